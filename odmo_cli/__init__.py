@@ -1,0 +1,3 @@
+"""odmo: action-conditioned on-demand 3D human motion generation."""
+
+__version__ = "0.1.0"

@@ -1,0 +1,3 @@
+from odmo_cli.cli import main
+
+main()

@@ -1,0 +1,286 @@
+"""The `odmo` command line. Each command parses options, builds a config and calls one library
+function; what it prints is a short rich summary, or JSON with `--json`."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+from typer.core import TyperGroup
+
+from odmo_cli.errors import TrainingError, UserError
+
+console = Console()
+err_console = Console(stderr=True)
+
+
+class _Group(TyperGroup):
+    """Turns UserError from any command into one line on stderr and exit status 2
+    (TrainingError: exit 1); Ctrl-C ends with status 130 after the command has cleaned up."""
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except UserError as exc:
+            err_console.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
+            raise typer.Exit(2) from None
+        except TrainingError as exc:
+            err_console.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
+            raise typer.Exit(1) from None
+
+
+app = typer.Typer(cls=_Group, no_args_is_help=True, add_completion=False,
+                  help="Action-conditioned on-demand 3D human motion generation (ODMO and baselines).",
+                  pretty_exceptions_enable=False)
+data_app = typer.Typer(cls=_Group, no_args_is_help=True, help="Find, check, fetch, convert and look at datasets.")
+app.add_typer(data_app, name="data")
+
+DataOpt = Annotated[Optional[Path], typer.Option(
+    "--data", help="Data root (else $ODMO_DATA_DIR, else ~/.local/share/odmo).")]
+JsonOpt = Annotated[bool, typer.Option("--json", help="Print machine-readable JSON.")]
+SeedOpt = Annotated[int, typer.Option("--seed", help="Seed for every random choice.")]
+DatasetArg = Annotated[str, typer.Argument(help="Dataset name (see `odmo data list`) or a folder.")]
+DemoOpt = Annotated[bool, typer.Option("--demo", help="Use the tiny demo subset shipped in the package.")]
+
+
+def _print_json(payload) -> None:
+    sys.stdout.write(json.dumps(payload, indent=2, default=str) + "\n")
+
+
+def _resolve(spec: str, data: Optional[Path], demo: bool = False):
+    from odmo_cli.data.locate import resolve
+    from odmo_cli.data.demo import demo_folder
+
+    if demo:
+        return resolve(demo_folder(spec))
+    return resolve(spec, data)
+
+
+@data_app.command("list")
+def data_list(data: DataOpt = None, as_json: JsonOpt = False):
+    """Table of known datasets and whether each is on disk."""
+    from odmo_cli.data.locate import data_root, find_release
+    from odmo_cli.data.manifest import available_manifests, load_manifest
+
+    rows = []
+    for name in available_manifests():
+        m = load_manifest(name)
+        where = find_release(m, data)
+        rows.append({"name": name, "title": m.title, "actions": len(m.actions),
+                     "clips": sum(a.count for a in m.actions), "skeleton": m.skeleton_name,
+                     "present": str(where) if where else None})
+    if as_json:
+        return _print_json({"data_root": str(data_root(data)), "datasets": rows})
+    table = Table(title=f"datasets (data root: {data_root(data)})")
+    for col in ("name", "title", "actions", "clips", "skeleton", "on disk"):
+        table.add_column(col)
+    for r in rows:
+        table.add_row(r["name"], r["title"], str(r["actions"]), str(r["clips"]), r["skeleton"],
+                      r["present"] or "[dim]no[/dim]")
+    console.print(table)
+
+
+@data_app.command("info")
+def data_info(dataset: DatasetArg, data: DataOpt = None, demo: DemoOpt = False,
+              verify: Annotated[bool, typer.Option(help="Check files against the manifest's SHA-256.")] = True,
+              as_json: JsonOpt = False):
+    """Actions x clips x lengths; flags missing, extra or corrupt files against the manifest."""
+    from odmo_cli.data.prepare import summarize
+
+    manifest, root = _resolve(dataset, data, demo)
+    s = summarize(manifest, root, verify=verify and not demo)
+    if as_json:
+        return _print_json(s.to_json())
+    table = Table(title=f"{manifest.title}: {s.total} clips in {len(s.rows)} actions ({root})")
+    for col in ("action", "clips", "paper", "len min", "len median", "len max", "modes"):
+        table.add_column(col, justify="left" if col == "action" else "right")
+    for r in s.rows:
+        mark = "" if r.clips == r.expected or demo else " [yellow]≠[/yellow]"
+        table.add_row(r.name, f"{r.clips}{mark}", str(r.expected), str(r.min_len), f"{r.median_len:g}",
+                      str(r.max_len), str(r.modes or "-"))
+    console.print(table)
+    console.print(f"skeleton {s.skeleton}, {s.fps:g} fps, clips cropped to T = {s.clip_length}")
+    for label, items in (("problems", s.problems), ("missing", s.missing), ("extra", s.extra),
+                         ("corrupt", s.corrupt)):
+        if items:
+            console.print(f"[red]{len(items)} {label}[/red]: " + "; ".join(items[:5])
+                          + (" ..." if len(items) > 5 else ""), highlight=False)
+    if s.digest_ok is not None:
+        console.print("checksums: " + ("[green]all files match the manifest[/green]" if s.digest_ok
+                                       else "[red]do not match the manifest[/red]"))
+
+
+@data_app.command("fetch")
+def data_fetch(dataset: Annotated[str, typer.Argument(help="Dataset name or a manifest .toml path.")],
+               to: Annotated[Path, typer.Option("--to", help="Folder to download into.")],
+               as_json: JsonOpt = False):
+    """Download a dataset's files from its manifest's sources, resuming and verifying SHA-256."""
+    from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn
+
+    from odmo_cli.data.fetch import fetch_dataset
+    from odmo_cli.data.manifest import load_manifest
+
+    manifest = load_manifest(dataset)
+    with Progress(TextColumn("{task.description}"), BarColumn(), DownloadColumn(),
+                  console=err_console, transient=True) as progress:
+        tasks: dict[str, int] = {}
+
+        def report(name: str, done: int, total: int | None) -> None:
+            if name not in tasks:
+                tasks[name] = progress.add_task(name, total=total)
+            progress.update(tasks[name], completed=done, total=total)
+
+        result = fetch_dataset(manifest, to, progress=report)
+    summary = {"dataset": manifest.name, "dest": str(result.dest), "downloaded": result.downloaded,
+               "present": result.present, "extracted": len(result.extracted)}
+    if as_json:
+        return _print_json(summary)
+    console.print(f"{manifest.name} in {result.dest}: {len(result.downloaded)} downloaded, "
+                  f"{len(result.present)} already present and verified, {len(result.extracted)} extracted")
+
+
+@data_app.command("prepare")
+def data_prepare(source: Annotated[Path, typer.Argument(help="The release folder to convert.")],
+                 fmt: Annotated[str, typer.Option("--format", help="humanact12 | cmu_a2m | folder")],
+                 out: Annotated[Path, typer.Option("--out", help="New motion folder to write.")],
+                 dataset: Annotated[Optional[str], typer.Option(
+                     "--dataset", help="Manifest for --format folder (e.g. uestc).")] = None):
+    """Validate a release and convert it into a motion folder (index.csv + npy + dataset.toml)."""
+    from odmo_cli.data.locate import manifest_for_folder
+    from odmo_cli.data.manifest import FORMATS, load_manifest
+    from odmo_cli.data.prepare import prepare
+
+    by_format = {"humanact12": "humanact12", "cmu_a2m": "cmu_mocap"}
+    if fmt not in FORMATS:
+        raise UserError(f"unknown format {fmt!r}; valid: {', '.join(FORMATS)}")
+    if fmt == "folder":
+        manifest = load_manifest(dataset) if dataset else manifest_for_folder(source)
+    else:
+        manifest = load_manifest(by_format[fmt])
+    clips = prepare(manifest, source, out)
+    console.print(f"wrote {out}: {len(clips)} clips in {len(manifest.actions)} actions "
+                  f"({manifest.skeleton_name}, {manifest.fps:g} fps)")
+
+
+@data_app.command("show")
+def data_show(dataset: DatasetArg, action: Annotated[str, typer.Option("--action", help="Action name.")],
+              out: Annotated[Optional[Path], typer.Option("--out", help=".gif (animated) or .png")] = None,
+              n: Annotated[int, typer.Option("--n", help="How many clips.")] = 4,
+              data: DataOpt = None, demo: DemoOpt = False, seed: SeedOpt = 0):
+    """Render a few clips of one action as stick figures."""
+    import numpy as np
+
+    from odmo_cli.data.dataset import crop_pad_shift
+    from odmo_cli.data.readers import read_dataset
+    from odmo_cli.viz import animate
+
+    if n <= 0:
+        raise UserError(f"--n must be a positive number of clips, got {n}")
+    manifest, root = _resolve(dataset, data, demo)
+    k = manifest.action_index(action)
+    clips = read_dataset(root, manifest)
+    idx = np.flatnonzero(clips.labels == k)
+    pick = np.sort(np.random.default_rng(seed).choice(idx, size=min(n, len(idx)), replace=False))
+    motions = np.stack([crop_pad_shift(clips.motions[i], manifest.clip_length) for i in pick])
+    out = out or Path(f"{manifest.name}_{manifest.actions[k].name}.gif")
+    animate(motions, manifest.skeleton, out, fps=manifest.fps, titles=[clips.names[i] for i in pick])
+    console.print(f"wrote {out}: {len(pick)} {manifest.actions[k].name} clips from {root}")
+
+
+ABLATIONS = ("es", "traj", "cons", "end-point")
+
+
+@app.command("train")
+def train(
+    dataset: Annotated[str, typer.Option("--dataset", help="Dataset name or folder.")] = "humanact12",
+    model: Annotated[str, typer.Option("--model", help="Model kind: odmo.")] = "odmo",
+    epochs: Annotated[int, typer.Option("--epochs")] = 300,
+    batch_size: Annotated[int, typer.Option("--batch-size", help="Pairs per step.")] = 256,
+    lr: Annotated[float, typer.Option("--lr")] = 1e-3,
+    lr_final: Annotated[Optional[float], typer.Option("--lr-final", help="Cosine-decay target (default: constant lr).")] = None,
+    tf_epochs: Annotated[int, typer.Option("--tf-epochs", help="Teacher forcing decays 1 -> 0.3 over these epochs (0: all).")] = 0,
+    ablate: Annotated[Optional[list[str]], typer.Option("--ablate", help="Drop a part: es, traj, cons, end-point (repeatable).")] = None,
+    checkpoint_every: Annotated[int, typer.Option("--checkpoint-every", help="Epochs between checkpoints.")] = 25,
+    val_every: Annotated[int, typer.Option("--val-every", help="Epochs between validation losses.")] = 10,
+    out: Annotated[Path, typer.Option("--out", help="Checkpoint to write.")] = Path("odmo.pt"),
+    resume: Annotated[Optional[Path], typer.Option("--resume", help="Checkpoint to continue from.")] = None,
+    threads: Annotated[int, typer.Option("--threads", help="CPU threads (0: torch default).")] = 0,
+    device: Annotated[str, typer.Option("--device", help="cpu (cuda is not supported yet).")] = "cpu",
+    data: DataOpt = None, seed: SeedOpt = 0, as_json: JsonOpt = False,
+):
+    """Train a model; checkpoints are written atomically, Ctrl-C keeps the last one."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from odmo_cli.data.readers import read_dataset
+    from odmo_cli.train import TrainConfig, train_odmo
+
+    if model != "odmo":
+        raise UserError(f"unknown model {model!r}; valid: odmo")
+    if device != "cpu":
+        raise UserError(f"device {device!r} is not supported; valid: cpu")
+    bad = [a for a in ablate or [] if a not in ABLATIONS]
+    if bad:
+        raise UserError(f"unknown ablation {bad[0]!r}; valid: {', '.join(ABLATIONS)}")
+    overrides = {"use_es": "es" not in (ablate or []), "use_traj": "traj" not in (ablate or []),
+                 "use_cons": "cons" not in (ablate or []), "use_end_point": "end-point" not in (ablate or [])}
+    tc = TrainConfig(epochs=epochs, batch_size=batch_size, lr=lr, lr_final=lr if lr_final is None else lr_final,
+                     tf_epochs=tf_epochs, checkpoint_every=checkpoint_every, val_every=val_every,
+                     seed=seed, threads=threads)
+    manifest, root = _resolve(dataset, data)
+    clips = read_dataset(root, manifest)
+    # the bar starts with the first finished epoch, so an early error prints only its one line
+    bar = Progress(TextColumn("epoch"), MofNCompleteColumn(), BarColumn(), TimeRemainingColumn(),
+                   TextColumn("{task.fields[info]}"), console=err_console, disable=as_json)
+    task = bar.add_task("train", total=epochs, info="")
+
+    def show(log) -> None:
+        bar.start()
+        info = " ".join(f"{k} {v:.3g}" for k, v in log.terms.items() if k != "vae")
+        info += "".join(f" | val {k} {v:.3g}" for k, v in log.val.items())
+        bar.update(task, completed=log.epoch, info=f"{info} | {log.clips_per_s:.0f} clips/s")
+
+    try:
+        result = train_odmo(clips, tc, out, overrides, resume, show)
+    except KeyboardInterrupt:
+        if bar.live.is_started:
+            bar.stop()
+        err_console.print(f"interrupted: the last completed epoch is saved in {out}")
+        raise typer.Exit(130) from None
+    finally:
+        if bar.live.is_started:
+            bar.stop()
+    if as_json:
+        return _print_json({"out": str(result.out), "epochs": result.epochs, "report": result.report})
+    r = result.report
+    console.print(f"wrote {result.out} after {result.epochs} epochs")
+    console.print(f"held-out reconstruction ({r['held_out_clips']} clips, no teacher forcing): "
+                  f"mean joint error {r['held_out_mpjpe']:.3f}, end-point error {r['held_out_end_error']:.3f}")
+    console.print(f"latent space: centroid distance {r['centroid_distance']:.2f} (min {r['min_centroid_distance']:.2f}, "
+                  f"alpha {r['alpha']:g}), spread {r['spread']:.2f}, nearest-centroid accuracy "
+                  f"{100 * r['nearest_centroid_acc']:.1f}%")
+
+
+@app.command("info")
+def info(checkpoint: Annotated[Path, typer.Argument(help="A checkpoint (.pt).")], as_json: JsonOpt = False):
+    """What a checkpoint holds: model kind, configs, dataset, epochs, final report."""
+    from odmo_cli.io import describe_checkpoint
+
+    desc = describe_checkpoint(checkpoint)
+    if as_json:
+        return _print_json(desc)
+    for key, value in desc.items():
+        if isinstance(value, dict):
+            console.print(f"[bold]{key}[/bold]")
+            for k, v in value.items():
+                console.print(f"  {k}: {v}", highlight=False)
+        else:
+            console.print(f"[bold]{key}[/bold]: {value}", highlight=False)
+
+
+def main() -> None:
+    app()

@@ -1,0 +1,1 @@
+"""Datasets: manifests, readers for the on-disk formats, the torch Dataset and samplers."""

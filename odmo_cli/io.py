@@ -1,0 +1,91 @@
+"""Safe file writing: everything goes to a temp file in the target folder, then is renamed."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+import torch
+
+from odmo_cli.errors import UserError
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path, suffix: str = "") -> Iterator[Path]:
+    """Yield a temp path beside `path`; rename it onto `path` only if the block succeeds.
+
+    On any exception the temp file is removed, so a failed write leaves nothing behind.
+    `suffix` ends the temp name, for writers that pick the format from the extension.
+    """
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise UserError(f"cannot write {path}: folder {folder} does not exist")
+    if not os.access(folder, os.W_OK):
+        raise UserError(f"cannot write {path}: folder {folder} is not writable")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + suffix, dir=folder)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.chmod(tmp_path, 0o666 & ~_umask())  # mkstemp makes 0600; give the usual permissions
+        os.replace(tmp_path, path)
+    except BaseException:
+        tmp_path.unlink(missing_ok=True)
+        raise
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def save_npz(path: str | Path, **arrays) -> None:
+    """Write an uncompressed .npz atomically."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+
+
+def save_checkpoint(path: str | Path, payload: dict) -> None:
+    """Write a checkpoint atomically. The payload must hold only tensors and plain values."""
+    with atomic_path(path) as tmp:
+        torch.save(payload, tmp)
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    """Load a checkpoint without unpickling classes (safe for untrusted files)."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"checkpoint not found: {path}")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises several types for bad or unsafe files
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise UserError(f"cannot load checkpoint {path}: {first}") from None
+    if not isinstance(payload, dict):
+        raise UserError(f"cannot load checkpoint {path}: not an odmo checkpoint (no dict inside)")
+    return payload
+
+
+def describe_checkpoint(path: str | Path) -> dict:
+    """The plain-value parts of a checkpoint: what `odmo info` prints."""
+    ckpt = load_checkpoint(path)
+    if "kind" not in ckpt or "config" not in ckpt:
+        raise UserError(f"{path} is not an odmo checkpoint (no model kind or config inside)")
+    n_params = sum(t.numel() for t in ckpt.get("state_dict", {}).values())
+    bank = ckpt.get("latent_bank")
+    last = ckpt.get("history", [])[-1:] or [{}]
+    return {
+        "file": str(path), "format_version": ckpt.get("format_version"), "kind": ckpt["kind"],
+        "parameters": n_params, "epoch": ckpt.get("epoch"), "dataset": ckpt.get("dataset", {}),
+        "config": ckpt["config"], "train_config": ckpt.get("train_config", {}),
+        "latent_bank": f"{len(bank['codes'])} codes" if bank else "none (training not finished)",
+        "last_epoch_losses": {k: round(v, 5) if isinstance(v, float) else v for k, v in last[0].items()},
+        "report": ckpt.get("report", {}),
+    }

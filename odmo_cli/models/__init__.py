@@ -1,0 +1,1 @@
+"""The models: ODMO and its baselines, and the action classifier used for evaluation."""

@@ -1,0 +1,182 @@
+"""ODMO: LMP encoder, trajectory generator and motion generator (main paper §3.2, supplement
+Table S2). Class conditioning is the outer product of the one-hot class and the code, flattened.
+
+Shapes: B batch, T frames, J joints, D latent size, C classes; a pose is flattened to J*3.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+
+@dataclass
+class ODMOConfig:
+    n_joints: int = 24
+    n_classes: int = 12
+    length: int = 60  # T
+    latent_dim: int = 20  # D
+    encoder_hidden: int = 64
+    encoder_fc: int = 256
+    traj_hidden: int = 128
+    motion_hidden: int = 128
+    use_end_point: bool = True  # False trains the paper's -r_e variant
+    # losses (eq. 5) and their switches for the ablations -L_es, -L_traj, -L_cons
+    alpha: float = 5.0  # contrastive margin
+    sigma2: float = 0.05  # prior variance of the posterior (eq. 1)
+    same_class_deadzone: float = 0.25  # relu(d^2 - 0.25) for same-class pairs, as in the release
+    use_es: bool = True
+    use_traj: bool = True
+    use_cons: bool = True
+    up_axis: int = 1  # index of the vertical axis, weighted by up_weight in L_r and L_mre
+    up_weight: float = 5.0  # the release weights the vertical coordinate x5
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ODMOConfig":
+        known = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in known})
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def condition(onehot: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    """outer(c, z) flattened: (B, C), (B, D) -> (B, C*D)."""
+    return (onehot[:, :, None] * z[:, None, :]).flatten(1)
+
+
+class LMPEncoder(nn.Module):
+    """LSTM over the LMP, FC-BN-PReLU x2, FC to (mu, logvar)."""
+
+    def __init__(self, cfg: ODMOConfig):
+        super().__init__()
+        self.rnn = nn.LSTM(cfg.n_joints * 3, cfg.encoder_hidden, batch_first=True)
+        h = cfg.encoder_fc
+        self.fc = nn.Sequential(
+            nn.Linear(cfg.encoder_hidden, h), nn.BatchNorm1d(h), nn.PReLU(),
+            nn.Linear(h, h), nn.BatchNorm1d(h), nn.PReLU(),
+            nn.Linear(h, 2 * cfg.latent_dim),
+        )
+
+    def forward(self, lmp: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        _, (h, _) = self.rnn(lmp.flatten(2))  # lmp (B, T, J, 3); h (1, B, H)
+        mu, logvar = self.fc(h[-1]).chunk(2, dim=-1)  # (B, D) each
+        return mu, logvar
+
+
+class TrajectoryGenerator(nn.Module):
+    """[outer(c, z), r_e] -> per-step root velocities (B, T, 3), without a Python loop over time."""
+
+    def __init__(self, cfg: ODMOConfig):
+        super().__init__()
+        self.cfg = cfg
+        d_in = cfg.n_classes * cfg.latent_dim + 3
+        h = cfg.traj_hidden
+        self.expand = nn.Linear(d_in, d_in * cfg.length)
+        self.act_in = nn.PReLU()
+        self.embed = nn.Linear(d_in, h)
+        self.rnn = nn.LSTM(h, h, num_layers=2, batch_first=True)
+        self.features = nn.Sequential(nn.Linear(h, h), nn.PReLU(), nn.Linear(h, h), nn.PReLU(),
+                                      nn.Linear(h, h), nn.PReLU())
+        self.out = nn.Linear(h, 3)
+
+    def forward(self, cond: torch.Tensor, end_point: torch.Tensor) -> torch.Tensor:
+        if not self.cfg.use_end_point:
+            end_point = torch.zeros_like(end_point)
+        x = torch.cat([cond, end_point], dim=-1)  # (B, C*D + 3)
+        x = self.act_in(self.expand(x)).view(len(x), self.cfg.length, -1)  # (B, T, C*D + 3)
+        y, _ = self.rnn(self.embed(x))  # (B, T, H)
+        return self.out(self.features(y))  # (B, T, 3) velocities
+
+
+class MotionGenerator(nn.Module):
+    """Seq2seq: a trajectory encoder whose final state starts an autoregressive pose decoder.
+
+    Each decoder step sees [previous pose, outer(c, z), t/T]. The parts of its input embedding
+    that do not depend on the previous pose are computed once for all steps.
+    """
+
+    def __init__(self, cfg: ODMOConfig):
+        super().__init__()
+        self.cfg = cfg
+        h, p = cfg.motion_hidden, cfg.n_joints * 3
+        self.traj_embed = nn.Linear(3, h)
+        self.traj_act = nn.PReLU()
+        self.traj_rnn = nn.LSTM(h, h, num_layers=2, batch_first=True)
+        self.embed = nn.Linear(p + cfg.n_classes * cfg.latent_dim + 1, h)
+        self.act = nn.PReLU()
+        self.cell0 = nn.LSTMCell(h, h)
+        self.cell1 = nn.LSTMCell(h, h)
+        self.out = nn.Linear(h, p)
+
+    def load_from_lstm(self):  # pragma: no cover - documentation hook
+        """The decoder is two LSTMCells, numerically a 2-layer nn.LSTM stepped one frame at a time."""
+
+    def forward(self, trajectory: torch.Tensor, cond: torch.Tensor, target: torch.Tensor | None = None,
+                teacher: torch.Tensor | None = None) -> torch.Tensor:
+        """trajectory (B, T, 3), cond (B, C*D) -> poses (B, T, J*3).
+
+        teacher (T,) bool: at steps where it is True the previous pose fed in is target's (B, T, J*3).
+        """
+        B, T = trajectory.shape[:2]
+        p = self.cfg.n_joints * 3
+        _, (h, c) = self.traj_rnn(self.traj_act(self.traj_embed(trajectory)))  # (2, B, H) each
+        state = [(h[0], c[0]), (h[1], c[1])]
+        w_prev, w_rest = self.embed.weight[:, :p], self.embed.weight[:, p:]
+        t_frac = torch.arange(1, T + 1, dtype=cond.dtype, device=cond.device) / T  # (T,)
+        fixed = F.linear(cond, w_rest[:, :-1], self.embed.bias)  # (B, H)
+        fixed = fixed[:, None, :] + t_frac[None, :, None] * w_rest[:, -1]  # (B, T, H)
+        if target is not None and teacher is not None and bool(teacher.any()):
+            prev_real = torch.cat([torch.zeros_like(target[:, :1]), target[:, :-1]], dim=1)  # (B, T, P)
+            real_part = F.linear(prev_real, w_prev)  # (B, T, H): all teacher-forced inputs at once
+        else:
+            teacher = None
+        prev = trajectory.new_zeros(B, p)
+        outputs = []
+        for t in range(T):
+            if teacher is not None and teacher[t]:
+                x = real_part[:, t] + fixed[:, t]
+            else:
+                x = F.linear(prev, w_prev) + fixed[:, t]
+            state[0] = self.cell0(self.act(x), state[0])
+            state[1] = self.cell1(state[0][0], state[1])
+            prev = self.out(state[1][0])  # (B, P)
+            outputs.append(prev)
+        return torch.stack(outputs, dim=1)  # (B, T, P)
+
+
+class ODMO(nn.Module):
+    def __init__(self, cfg: ODMOConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.encoder = LMPEncoder(cfg)
+        self.trajectory = TrajectoryGenerator(cfg)
+        self.motion = MotionGenerator(cfg)
+
+    def encode(self, motion: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Motion (B, T, J, 3) -> (mu, logvar) of its LMP, (B, D) each."""
+        lmp = motion - motion[:, :, :1]
+        return self.encoder(lmp)
+
+    def decode(self, z: torch.Tensor, labels: torch.Tensor, end_point: torch.Tensor,
+               target: torch.Tensor | None = None, teacher: torch.Tensor | None = None
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Code (B, D), labels (B,), end point (B, 3) -> (trajectory (B, T, 3), motion (B, T, J, 3))."""
+        onehot = F.one_hot(labels, self.cfg.n_classes).to(z.dtype)
+        cond = condition(onehot, z)
+        trajectory = torch.cumsum(self.trajectory(cond, end_point), dim=1)  # r_t = sum of v, r_0 = 0
+        flat_target = target.flatten(2) if target is not None else None
+        motion = self.motion(trajectory, cond, flat_target, teacher)
+        return trajectory, motion.view(*motion.shape[:2], self.cfg.n_joints, 3)
+
+    def forward(self, motion: torch.Tensor, labels: torch.Tensor, generator: torch.Generator | None = None,
+                teacher: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """Reconstruct a batch: encode its LMP, sample z, decode with the real end point."""
+        mu, logvar = self.encode(motion)
+        eps = torch.randn(mu.shape, generator=generator, dtype=mu.dtype, device=mu.device)
+        z = mu + eps * torch.exp(0.5 * logvar)
+        trajectory, recon = self.decode(z, labels, motion[:, -1, 0], target=motion, teacher=teacher)
+        return {"mu": mu, "logvar": logvar, "z": z, "trajectory": trajectory, "motion": recon}

@@ -1,0 +1,102 @@
+"""Named skeletons: joint names, parents, kinematic chains and up axis.
+
+One definition per dataset. Joint 0 is always the root (pelvis). `parents[j]` is the joint
+that bone j hangs from (-1 for the root); the chains are the ones the papers draw with.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from odmo_cli.errors import UserError
+
+
+@dataclass(frozen=True)
+class Skeleton:
+    name: str
+    joint_names: tuple[str, ...]
+    chains: tuple[tuple[int, ...], ...]
+    up_axis: str  # "+y" or "-y": the direction of "up" in the dataset's own frame
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.joint_names)
+
+    @property
+    def parents(self) -> tuple[int, ...]:
+        """Parent of every joint, derived from the chains (each chain starts at a joint already placed)."""
+        parents = [-2] * self.n_joints
+        parents[0] = -1
+        for chain in self.chains:
+            for parent, child in zip(chain[:-1], chain[1:]):
+                parents[child] = parent
+        return tuple(parents)
+
+    @property
+    def bones(self) -> tuple[tuple[int, int], ...]:
+        """(parent, child) pairs, one per non-root joint, in joint order."""
+        return tuple((p, j) for j, p in enumerate(self.parents) if p >= 0)
+
+    @property
+    def up_index(self) -> int:
+        return "xyz".index(self.up_axis[-1])
+
+    @property
+    def up_sign(self) -> float:
+        return -1.0 if self.up_axis.startswith("-") else 1.0
+
+    @property
+    def ground_axes(self) -> tuple[int, int]:
+        """The two axes spanning the ground plane (end points are given in these)."""
+        return tuple(i for i in range(3) if i != self.up_index)  # type: ignore[return-value]
+
+
+_SMPL_NAMES = (
+    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2",
+    "left_ankle", "right_ankle", "spine3", "left_foot", "right_foot", "neck", "left_collar",
+    "right_collar", "head", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow",
+    "left_wrist", "right_wrist", "left_hand", "right_hand",
+)
+
+# Left/right of cmu20 checked on walking clips of the Action2Motion release (joints 4-7 and
+# 12-15 lie on the walker's left of the direction of travel).
+_CMU20_NAMES = (
+    "root", "thorax", "neck", "head",
+    "left_shoulder", "left_elbow", "left_wrist", "left_hand",
+    "right_shoulder", "right_elbow", "right_wrist", "right_hand",
+    "left_hip", "left_knee", "left_ankle", "left_toe",
+    "right_hip", "right_knee", "right_ankle", "right_toe",
+)
+
+# ODMO's UESTC release (18 joints, supplement Figure 1). Which side is "left", and the up axis,
+# have not been checked against data (the release is not in our test data): sides are named a/b.
+_UESTC18_NAMES = (
+    "pelvis", "thorax", "shoulder_a", "elbow_a", "wrist_a", "shoulder_b", "elbow_b", "wrist_b",
+    "neck", "hip_b", "knee_b", "ankle_b", "hip_a", "knee_a", "ankle_a", "foot_a", "foot_b", "head",
+)
+
+SKELETONS: dict[str, Skeleton] = {
+    "humanact12": Skeleton(
+        "humanact12", _SMPL_NAMES,
+        ((0, 1, 4, 7, 10), (0, 2, 5, 8, 11), (0, 3, 6, 9, 12, 15),
+         (9, 13, 16, 18, 20, 22), (9, 14, 17, 19, 21, 23)),
+        up_axis="-y",
+    ),
+    "cmu20": Skeleton(
+        "cmu20", _CMU20_NAMES,
+        ((0, 1, 2, 3), (0, 12, 13, 14, 15), (0, 16, 17, 18, 19), (1, 4, 5, 6, 7), (1, 8, 9, 10, 11)),
+        up_axis="+y",
+    ),
+    "uestc18": Skeleton(
+        "uestc18", _UESTC18_NAMES,
+        ((0, 12, 13, 14, 15), (0, 9, 10, 11, 16), (0, 1, 8, 17), (1, 5, 6, 7), (1, 2, 3, 4)),
+        up_axis="-y",
+    ),
+}
+
+
+def get_skeleton(name: str) -> Skeleton:
+    try:
+        return SKELETONS[name]
+    except KeyError:
+        raise UserError(f"unknown skeleton {name!r}; valid: {', '.join(SKELETONS)}") from None

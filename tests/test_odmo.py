@@ -1,0 +1,298 @@
+"""ODMO model, loss terms and the training loop (issue: ODMO model and `odmo train`)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from odmo_cli.cli import app
+from odmo_cli.data.demo import demo_folder
+from odmo_cli.data.locate import resolve
+from odmo_cli.data.readers import read_dataset
+from odmo_cli.errors import TrainingError
+from odmo_cli.io import load_checkpoint
+from odmo_cli.models import losses
+from odmo_cli.models.odmo import ODMO, ODMOConfig, condition
+from odmo_cli.train import TrainConfig, Trainer, model_config_for, train_odmo
+
+
+@pytest.fixture(scope="module")
+def demo_clips():
+    manifest, root = resolve(demo_folder("humanact12"))
+    return read_dataset(root, manifest)
+
+
+def tiny_config(**kw) -> ODMOConfig:
+    base = dict(n_joints=4, n_classes=3, length=8, latent_dim=5, encoder_hidden=8, encoder_fc=16,
+                traj_hidden=12, motion_hidden=12)
+    base.update(kw)
+    return ODMOConfig(**base)
+
+
+# -- loss terms on hand-made inputs ----------------------------------------------------------
+
+def test_contrastive_zero_for_different_classes_beyond_margin():
+    mu1 = torch.zeros(2, 3)
+    mu2 = torch.tensor([[6.0, 0, 0], [0, 0, 5.5]])
+    out = losses.contrastive(mu1, mu2, torch.tensor([False, False]), alpha=5.0)
+    assert torch.allclose(out, torch.zeros(2))
+
+
+def test_contrastive_known_values():
+    mu1 = torch.zeros(4, 2)
+    mu2 = torch.tensor([[3.0, 4.0], [0.3, 0.0], [1.0, 0.0], [2.0, 0.0]])
+    same = torch.tensor([False, True, True, False])
+    out = losses.contrastive(mu1, mu2, same, alpha=5.0, deadzone=0.25)
+    # d = 5 at the margin; same class inside the dead zone; same class d^2 = 1; different d = 2
+    expected = torch.tensor([0.0, 0.0, 0.5 * (1 - 0.25), 0.5 * (5 - 2) ** 2])
+    assert torch.allclose(out, expected, atol=1e-4)
+
+
+def test_variance_prior_zero_at_target_and_closed_form():
+    sigma2 = 0.05
+    at_target = torch.full((1, 20), math.log(sigma2))
+    assert losses.variance_prior(at_target, sigma2).abs().item() < 1e-5
+    logvar = torch.zeros(1, 2)  # s^2 = 1
+    expected = 0.5 * 2 * (1 / sigma2 - 1 - 0 + math.log(sigma2))
+    assert losses.variance_prior(logvar, sigma2).item() == pytest.approx(expected, rel=1e-6)
+
+
+def test_standard_kl_known_value():
+    mu = torch.tensor([[1.0, 0.0]])
+    assert losses.standard_kl(mu, torch.zeros(1, 2)).item() == pytest.approx(0.5)
+
+
+def test_sequence_error_weights_the_up_axis():
+    pred = torch.zeros(1, 2, 1, 3)
+    target = torch.tensor([[[[1.0, 1.0, 0.0]], [[0.0, 2.0, 0.0]]]])
+    w = losses.coordinate_weights(up_axis=1, up_weight=5.0)
+    # frame 1: (1 + 5) / 3 = 2; frame 2: (5 * 4) / 3
+    assert losses.sequence_error(pred, target, w).item() == pytest.approx(2 + 20 / 3)
+
+
+def test_terms_vanish_for_a_perfect_reconstruction():
+    cfg = tiny_config()
+    motion = torch.randn(4, cfg.length, cfg.n_joints, 3)
+    motion = motion - motion[:, :1, :1]
+    out = {"trajectory": motion[:, :, 0], "motion": motion, "mu": torch.zeros(4, 5),
+           "logvar": torch.full((4, 5), math.log(cfg.sigma2))}
+    terms = losses.odmo_terms(out, motion, torch.tensor([0, 1, 0, 1]), cfg)
+    for k in ("r", "mre", "cons"):
+        assert terms[k].item() == pytest.approx(0.0, abs=1e-10)
+    # same-class pairs at distance 0 and no prior penalty: L_es is zero too
+    assert terms["es"].item() == pytest.approx(0.0, abs=1e-5)
+
+
+def test_ablation_switches_change_the_total():
+    cfg = tiny_config()
+    terms = {"mre": torch.tensor(1.0), "es": torch.tensor(2.0), "vae": torch.tensor(3.0),
+             "r": torch.tensor(4.0), "cons": torch.tensor(5.0)}
+    assert losses.total_loss(terms, cfg).item() == 12.0
+    assert losses.total_loss(terms, tiny_config(use_es=False)).item() == 13.0
+    assert losses.total_loss(terms, tiny_config(use_traj=False, use_cons=False)).item() == 3.0
+
+
+# -- model -----------------------------------------------------------------------------------
+
+def test_condition_is_the_flattened_outer_product():
+    onehot = torch.tensor([[0.0, 1.0, 0.0]])
+    z = torch.tensor([[1.0, 2.0]])
+    assert condition(onehot, z).tolist() == [[0.0, 0.0, 1.0, 2.0, 0.0, 0.0]]
+
+
+def test_shapes_and_trajectory_is_cumulative():
+    torch.manual_seed(0)
+    cfg = tiny_config()
+    model = ODMO(cfg).eval()
+    motion = torch.randn(3, cfg.length, cfg.n_joints, 3)
+    out = model(motion, torch.tensor([0, 1, 2]))
+    assert out["motion"].shape == (3, cfg.length, cfg.n_joints, 3)
+    assert out["trajectory"].shape == (3, cfg.length, 3)
+    assert out["mu"].shape == out["logvar"].shape == (3, cfg.latent_dim)
+    onehot = torch.nn.functional.one_hot(torch.tensor([0, 1, 2]), 3).float()
+    vel = model.trajectory(condition(onehot, out["z"]), motion[:, -1, 0])
+    assert torch.allclose(out["trajectory"], torch.cumsum(vel, 1), atol=1e-6)
+
+
+def test_minus_re_variant_ignores_the_end_point():
+    torch.manual_seed(0)
+    model = ODMO(tiny_config(use_end_point=False)).eval()
+    z, lab = torch.randn(2, 5), torch.tensor([0, 1])
+    a, _ = model.decode(z, lab, torch.zeros(2, 3))
+    b, _ = model.decode(z, lab, torch.full((2, 3), 3.0))
+    assert torch.equal(a, b)
+    model = ODMO(tiny_config()).eval()
+    a, _ = model.decode(z, lab, torch.zeros(2, 3))
+    b, _ = model.decode(z, lab, torch.full((2, 3), 3.0))
+    assert not torch.allclose(a, b)
+
+
+def _naive_decoder(gen, trajectory, cond, target, teacher):
+    """The decoder written step by step from the paper: embed([prev, cond, t/T]) each step."""
+    B, T = trajectory.shape[:2]
+    _, (h, c) = gen.traj_rnn(gen.traj_act(gen.traj_embed(trajectory)))
+    s0, s1 = (h[0], c[0]), (h[1], c[1])
+    prev = torch.zeros(B, target.shape[-1])
+    outs = []
+    for t in range(T):
+        if teacher[t]:
+            prev = target[:, t - 1] if t > 0 else torch.zeros_like(prev)
+        x = torch.cat([prev, cond, torch.full((B, 1), (t + 1) / T)], -1)
+        s0 = gen.cell0(gen.act(gen.embed(x)), s0)
+        s1 = gen.cell1(s0[0], s1)
+        prev = gen.out(s1[0])
+        outs.append(prev)
+    return torch.stack(outs, 1)
+
+
+@pytest.mark.parametrize("pattern", ["all", "none", "mixed"])
+def test_decoder_matches_the_step_by_step_definition(pattern):
+    torch.manual_seed(1)
+    cfg = tiny_config()
+    gen = ODMO(cfg).motion
+    B, T, P = 3, cfg.length, cfg.n_joints * 3
+    trajectory, cond = torch.randn(B, T, 3), torch.randn(B, cfg.n_classes * cfg.latent_dim)
+    target = torch.randn(B, T, P)
+    teacher = {"all": torch.ones(T, dtype=torch.bool), "none": torch.zeros(T, dtype=torch.bool),
+               "mixed": torch.arange(T) % 3 == 0}[pattern]
+    fast = gen(trajectory, cond, target, teacher)
+    slow = _naive_decoder(gen, trajectory, cond, target, teacher)
+    assert torch.allclose(fast, slow, atol=1e-5)
+
+
+# -- training --------------------------------------------------------------------------------
+
+def small_tc(**kw) -> TrainConfig:
+    base = dict(epochs=4, batch_size=16, val_every=0, checkpoint_every=0, val_fraction=0.0, seed=3)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def test_tiny_training_decreases_the_loss(demo_clips, tmp_path):
+    torch.manual_seed(0)
+    cfg = model_config_for(demo_clips, {"motion_hidden": 32, "traj_hidden": 32})
+    trainer = Trainer(demo_clips, cfg, small_tc(epochs=12, tf_start=1.0, tf_end=1.0), tmp_path / "m.pt")
+    history = trainer.run()
+    first, last = history[0]["total"], np.mean([h["total"] for h in history[-3:]])
+    assert last < 0.7 * first, (first, last)
+    assert history[-1]["mre"] < history[0]["mre"]
+
+
+def test_resume_gives_the_same_parameters(demo_clips, tmp_path, monkeypatch):
+    overrides = {"motion_hidden": 16, "traj_hidden": 16}
+    full = train_odmo(demo_clips, small_tc(epochs=4), tmp_path / "full.pt", overrides)
+    # the same run, interrupted after epoch 2 (Ctrl-C), then resumed
+    real = Trainer.train_epoch
+
+    def stop_at_two(self):
+        if self.epoch == 2:
+            raise KeyboardInterrupt
+        return real(self)
+
+    monkeypatch.setattr(Trainer, "train_epoch", stop_at_two)
+    with pytest.raises(KeyboardInterrupt):
+        train_odmo(demo_clips, small_tc(epochs=4), tmp_path / "part.pt", overrides)
+    assert load_checkpoint(tmp_path / "part.pt")["epoch"] == 2
+    monkeypatch.setattr(Trainer, "train_epoch", real)
+    train_odmo(demo_clips, small_tc(epochs=4), tmp_path / "part.pt", resume=tmp_path / "part.pt")
+    a, b = load_checkpoint(full.out), load_checkpoint(tmp_path / "part.pt")
+    assert a["epoch"] == b["epoch"] == 4
+    for key in a["state_dict"]:
+        assert torch.equal(a["state_dict"][key], b["state_dict"][key]), key
+    assert [h["total"] for h in a["history"]] == [h["total"] for h in b["history"]]
+    assert torch.equal(a["latent_bank"]["codes"], b["latent_bank"]["codes"])
+
+
+def test_checkpoint_is_safe_and_holds_the_latent_bank(demo_clips, tmp_path):
+    result = train_odmo(demo_clips, small_tc(epochs=1, val_fraction=0.25),
+                        tmp_path / "m.pt", {"motion_hidden": 16})
+    ckpt = torch.load(result.out, weights_only=True)
+    bank = ckpt["latent_bank"]
+    n_train = len(ckpt["split"]["train"])
+    assert bank["codes"].shape == (n_train, 20)
+    assert bank["end_points"].shape == (n_train, 3)
+    assert len(bank["names"]) == n_train and bank["labels"].max() < 12
+    assert ckpt["config"]["motion_hidden"] == 16 and ckpt["dataset"]["length"] == 60
+    # the bank's codes are the encoder's means of the first-T-frame crops
+    model = ODMO(ODMOConfig.from_dict(ckpt["config"]))
+    model.load_state_dict(ckpt["state_dict"])
+    from odmo_cli.train import crops_from_start
+    motion, _ = crops_from_start(demo_clips, ckpt["split"]["train"].numpy()[:4], 60)
+    assert torch.allclose(model.eval().encode(motion)[0], bank["codes"][:4], atol=1e-5)
+    report = result.report
+    assert 0 <= report["nearest_centroid_acc"] <= 1 and report["held_out_mpjpe"] > 0
+
+
+def test_non_finite_loss_stops_and_keeps_the_last_checkpoint(demo_clips, tmp_path, monkeypatch):
+    trainer = Trainer(demo_clips, model_config_for(demo_clips, {"motion_hidden": 16}),
+                      small_tc(epochs=3, checkpoint_every=1), tmp_path / "m.pt")
+    real = losses.odmo_terms
+    calls = {"n": 0}
+
+    def poisoned(*args):
+        calls["n"] += 1
+        terms = real(*args)
+        if trainer.epoch >= 1:
+            terms["mre"] = terms["mre"] * float("nan")
+        return terms
+
+    monkeypatch.setattr("odmo_cli.train.odmo_terms", poisoned)
+    with pytest.raises(TrainingError, match="non-finite loss at epoch 2"):
+        trainer.run()
+    assert load_checkpoint(tmp_path / "m.pt")["epoch"] == 1
+
+
+def test_ctrl_c_keeps_the_last_completed_epoch(demo_clips, tmp_path, monkeypatch):
+    trainer = Trainer(demo_clips, model_config_for(demo_clips, {"motion_hidden": 16}),
+                      small_tc(epochs=5), tmp_path / "m.pt")
+    real = trainer.train_epoch
+
+    def interrupt():
+        if trainer.epoch == 2:
+            raise KeyboardInterrupt
+        return real()
+
+    monkeypatch.setattr(trainer, "train_epoch", interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        trainer.run()
+    assert load_checkpoint(tmp_path / "m.pt")["epoch"] == 2
+
+
+def test_teacher_forcing_decays_linearly():
+    tc = TrainConfig(epochs=11, tf_start=1.0, tf_end=0.3)
+    assert tc.teacher_rate(0) == 1.0
+    assert tc.teacher_rate(10) == pytest.approx(0.3)
+    assert tc.teacher_rate(5) == pytest.approx(0.65)
+    assert TrainConfig(epochs=100, tf_epochs=10).teacher_rate(50) == pytest.approx(0.3)
+
+
+# -- CLI -------------------------------------------------------------------------------------
+
+def test_cli_train_and_info(tmp_path):
+    runner = CliRunner()
+    out = tmp_path / "m.pt"
+    res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--epochs", "1",
+                              "--batch-size", "8", "--out", str(out), "--json"])
+    assert res.exit_code == 0, res.output
+    assert out.is_file()
+    res = runner.invoke(app, ["info", str(out), "--json"])
+    assert res.exit_code == 0 and '"kind": "odmo"' in res.stdout
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--ablate", "nope"], "unknown ablation 'nope'; valid: es, traj, cons, end-point"),
+    (["--epochs", "0"], "epochs and batch size must be positive"),
+    (["--model", "gan"], "unknown model 'gan'; valid: odmo"),
+    (["--resume", "missing.pt"], "checkpoint not found"),
+])
+def test_cli_train_bad_input(tmp_path, args, message):
+    out = tmp_path / "m.pt"
+    res = CliRunner().invoke(app, ["train", "--dataset", str(demo_folder("humanact12")),
+                                   "--out", str(out), *args])
+    assert res.exit_code == 2
+    assert message in res.stderr and res.stderr.count("\n") == 1
+    assert not out.exists() and list(tmp_path.iterdir()) == []
