@@ -3,6 +3,7 @@ function; what it prints is a short rich summary, or JSON with `--json`."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -46,6 +47,10 @@ JsonOpt = Annotated[bool, typer.Option("--json", help="Print machine-readable JS
 SeedOpt = Annotated[int, typer.Option("--seed", help="Seed for every random choice.")]
 DatasetArg = Annotated[str, typer.Argument(help="Dataset name (see `odmo data list`) or a folder.")]
 DemoOpt = Annotated[bool, typer.Option("--demo", help="Use the tiny demo subset shipped in the package.")]
+ModelOpt = Annotated[Optional[str], typer.Option(
+    "--model", help="Checkpoint path, or a shipped model: humanact12 (default), cmu.")]
+OutOpt = Annotated[Path, typer.Option("--out", help="Samples file to write (.npz).")]
+EndOpt = Annotated[Optional[str], typer.Option("--end", help="End point: x,z (ground plane) or x,y,z.")]
 
 
 def _print_json(payload) -> None:
@@ -160,6 +165,8 @@ def data_prepare(source: Annotated[Path, typer.Argument(help="The release folder
         raise UserError(f"unknown format {fmt!r}; valid: {', '.join(FORMATS)}")
     if fmt == "folder":
         manifest = load_manifest(dataset) if dataset else manifest_for_folder(source)
+        # a motion folder of a named dataset: its actions and skeleton, already in its units
+        manifest = dataclasses.replace(manifest, format="folder", scale=1.0)
     else:
         manifest = load_manifest(by_format[fmt])
     clips = prepare(manifest, source, out)
@@ -239,10 +246,15 @@ def train(
     task = bar.add_task("train", total=epochs, info="")
 
     def show(log) -> None:
-        bar.start()
         info = " ".join(f"{k} {v:.3g}" for k, v in log.terms.items() if k != "vae")
         info += "".join(f" | val {k} {v:.3g}" for k, v in log.val.items())
-        bar.update(task, completed=log.epoch, info=f"{info} | {log.clips_per_s:.0f} clips/s")
+        info += f" | {log.clips_per_s:.0f} clips/s"
+        if not err_console.is_terminal:  # a log file gets a line per validation instead of a bar
+            if log.val and not as_json:
+                err_console.print(f"epoch {log.epoch}/{epochs} {info}", highlight=False)
+            return
+        bar.start()
+        bar.update(task, completed=log.epoch, info=info)
 
     try:
         result = train_odmo(clips, tc, out, overrides, resume, show)
@@ -280,6 +292,153 @@ def info(checkpoint: Annotated[Path, typer.Argument(help="A checkpoint (.pt).")]
                 console.print(f"  {k}: {v}", highlight=False)
         else:
             console.print(f"[bold]{key}[/bold]: {value}", highlight=False)
+
+
+def _summary(batch, out: Path, as_json: bool, extra: dict | None = None) -> None:
+    import numpy as np
+
+    per_action = {}
+    for a, m in zip(batch.actions, batch.modes):
+        per_action.setdefault(str(a), {}).setdefault(int(m), 0)
+        per_action[str(a)][int(m)] += 1
+    payload = {"out": str(out), "motions": int(len(batch.motions)), "model": batch.model, "seed": batch.seed,
+               "frames": int(batch.motions.shape[1]), "actions": per_action, "dist_e": batch.dist_e(), **(extra or {})}
+    if as_json:
+        return _print_json(payload)
+    table = Table(title=f"{len(batch.motions)} motions -> {out}")
+    table.add_column("action")
+    table.add_column("motions", justify="right")
+    table.add_column("modes used (mode: count)")
+    for a, counts in per_action.items():
+        table.add_row(a, str(sum(counts.values())), ", ".join(
+            f"n/a: {v}" if k < 0 else f"{k}: {v}" for k, v in sorted(counts.items())))
+    console.print(table)
+    if payload["dist_e"] is not None:
+        reach = np.sqrt(np.mean(np.sum((batch.end_points - batch.reached) ** 2, axis=1)))
+        console.print(f"dist_e (mean squared end-point error) {payload['dist_e']:.4f}; RMS distance {reach:.3f}")
+    console.print(f"model {batch.model}, seed {batch.seed}, {batch.dataset['fps']:g} fps, skeleton {batch.dataset['skeleton']}")
+
+
+@app.command("sample")
+def sample_cmd(
+    action: Annotated[list[str], typer.Option("--action", help="Action name (repeatable), or all.")],
+    n: Annotated[int, typer.Option("--n", help="Motions per action (per end point).")] = 20,
+    out: OutOpt = Path("samples.npz"),
+    model: ModelOpt = None,
+    mode: Annotated[Optional[int], typer.Option("--mode", help="Sample only this discovered mode.")] = None,
+    mode_weights: Annotated[Optional[str], typer.Option("--mode-weights", help="Weights per mode, e.g. 0.2,0.8.")] = None,
+    sampling: Annotated[str, typer.Option("--sampling", help="mode-preserving | conventional")] = "mode-preserving",
+    end: EndOpt = None,
+    end_from: Annotated[Optional[str], typer.Option("--end-from", help="First end point of a segment.")] = None,
+    end_to: Annotated[Optional[str], typer.Option("--end-to", help="Last end point of a segment.")] = None,
+    steps: Annotated[int, typer.Option("--steps", help="End points on the --end-from/--end-to segment.")] = 10,
+    gif: Annotated[Optional[Path], typer.Option("--gif", help="Also render the first motions to a GIF.")] = None,
+    seed: SeedOpt = 0, as_json: JsonOpt = False,
+):
+    """Generate motions of the given actions (npz as in DESIGN.md)."""
+    from odmo_cli.generate import load_odmo, sample
+
+    if mode is not None and mode_weights is not None:
+        raise UserError("give either --mode or --mode-weights, not both")
+    weights = _floats(mode_weights, "--mode-weights") if mode_weights is not None else None
+    loaded = load_odmo(model)
+    batch = sample(loaded, action, n, seed, mode, weights, sampling, end, end_from, end_to, steps)
+    batch.save(out)
+    if gif is not None:
+        from odmo_cli.skeletons import get_skeleton
+        from odmo_cli.viz import animate
+
+        k = min(len(batch.motions), 8)
+        animate(batch.motions[:k], get_skeleton(batch.dataset["skeleton"]), gif, fps=batch.dataset["fps"],
+                titles=[f"{a} #{i}" for i, a in enumerate(batch.actions[:k])])
+    _summary(batch, out, as_json)
+
+
+def _floats(text: str, flag: str) -> list[float]:
+    try:
+        return [float(v) for v in text.split(",")]
+    except ValueError:
+        raise UserError(f"{flag} must be comma-separated numbers, got {text!r}") from None
+
+
+@app.command("interpolate")
+def interpolate_cmd(
+    action: Annotated[str, typer.Option("--action", help="Action name.")],
+    from_mode: Annotated[Optional[int], typer.Option("--from-mode")] = None,
+    to_mode: Annotated[Optional[int], typer.Option("--to-mode")] = None,
+    from_code: Annotated[Optional[int], typer.Option("--from-code", help="Index into the latent bank.")] = None,
+    to_code: Annotated[Optional[int], typer.Option("--to-code", help="Index into the latent bank.")] = None,
+    steps: Annotated[int, typer.Option("--steps")] = 8,
+    end: EndOpt = None, out: OutOpt = Path("interpolation.npz"), model: ModelOpt = None,
+    seed: SeedOpt = 0, as_json: JsonOpt = False,
+):
+    """Blend two modes (or two codes) of an action: one motion per step on the line between them."""
+    from odmo_cli.generate import interpolate, load_odmo
+
+    batch = interpolate(load_odmo(model), action, steps, from_mode, to_mode, from_code, to_code, end, seed)
+    batch.save(out)
+    _summary(batch, out, as_json)
+
+
+@app.command("modes")
+def modes_cmd(
+    model: Annotated[Optional[str], typer.Argument(help="Checkpoint path or shipped name (default humanact12).")] = None,
+    refit: Annotated[bool, typer.Option("--refit", help="Refit the mixtures and save them into the checkpoint.")] = False,
+    plot: Annotated[Optional[Path], typer.Option("--plot", help="Write a 2-D plot of the codes (.png).")] = None,
+    projection: Annotated[str, typer.Option("--projection", help="pca | tsne")] = "pca",
+    colour: Annotated[str, typer.Option("--colour", help="action | mode")] = "action",
+    action: Annotated[Optional[str], typer.Option("--action", help="Plot only this action.")] = None,
+    seed: SeedOpt = 0, as_json: JsonOpt = False,
+):
+    """Discovered modes per action: counts, silhouettes, agreement with ground-truth modes."""
+    from odmo_cli.latent import mode_report
+
+    from odmo_cli.generate import load_odmo, refit_modes
+
+    if colour not in ("action", "mode"):
+        raise UserError(f"unknown --colour {colour!r}; valid: action, mode")
+    loaded = load_odmo(model)
+    if refit:
+        refit_modes(loaded, seed)
+    rows = mode_report(loaded.bank, loaded.modes, loaded.actions)
+    if plot is not None:
+        _plot_modes(loaded, plot, projection, colour, action, seed)
+    if as_json:
+        return _print_json({"model": loaded.source, "actions": rows, "plot": str(plot) if plot else None})
+    table = Table(title=f"modes of {loaded.source}")
+    for col in ("action", "clips", "modes", "members", "silhouette by k", "true modes", "ARI"):
+        table.add_column(col)
+    for r in rows:
+        sil = " ".join(f"{k}:{v:.2f}" for k, v in r["silhouettes"].items()) or r["note"]
+        table.add_row(r["action"], str(r["clips"]), str(r["modes"]), " ".join(map(str, r["members"])), sil,
+                      "-" if r["true_modes"] is None else str(r["true_modes"]),
+                      "-" if r["ari"] is None else f"{r['ari']:.2f}")
+    console.print(table)
+    if plot is not None:
+        console.print(f"wrote {plot}")
+
+
+def _plot_modes(loaded, plot: Path, projection: str, colour: str, action: Optional[str], seed: int) -> None:
+    import numpy as np
+
+    from odmo_cli.latent import ActionModes, assign
+    from odmo_cli.viz import latent_plot
+
+    codes, labels = loaded.bank["codes"].numpy(), loaded.bank["labels"].numpy()
+    chosen = [loaded.action_index(action)] if action else list(range(len(loaded.actions)))
+    sel = np.isin(labels, chosen)
+    groups, names, gaussians = np.zeros(len(codes), dtype=int), [], []
+    if colour == "action":
+        groups, names = labels, loaded.actions
+    for a in chosen:
+        m = ActionModes.from_plain(loaded.modes["actions"][a])
+        gaussians += list(zip(m.means, m.covariances))
+        if colour == "mode":
+            own = labels == a
+            groups[own] = len(names) + assign(m, codes[own].astype(np.float64))
+            names += [f"{loaded.actions[a]} mode {k}" for k in range(len(m.means))]
+    latent_plot(codes[sel], groups[sel], names, plot, projection, gaussians, seed,
+                title=f"{loaded.dataset['name']} latent codes ({projection})")
 
 
 def main() -> None:

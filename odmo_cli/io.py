@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
+import zipfile
 from pathlib import Path
 from typing import Iterator
 
@@ -46,10 +47,13 @@ def _umask() -> int:
 
 
 def save_npz(path: str | Path, **arrays) -> None:
-    """Write an uncompressed .npz atomically."""
+    """Write an uncompressed .npz atomically, byte-for-byte reproducible (fixed zip timestamps)."""
     with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            np.savez(f, **arrays)
+        with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED) as zf:
+            for name, value in arrays.items():
+                info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+                with zf.open(info, "w", force_zip64=True) as f:
+                    np.lib.format.write_array(f, np.asanyarray(value), allow_pickle=False)
 
 
 def save_checkpoint(path: str | Path, payload: dict) -> None:

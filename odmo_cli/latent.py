@@ -7,6 +7,8 @@ never needs the dataset.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import numpy as np
 import torch
 
@@ -62,3 +64,148 @@ def separation(train_codes: np.ndarray, train_labels: np.ndarray, test_codes: np
     return {"centroid_distance": float(off.mean()) if len(off) else 0.0,
             "min_centroid_distance": float(off.min()) if len(off) else 0.0,
             "spread": float(spread), "nearest_centroid_acc": float((pred == test_labels).mean())}
+
+
+# -- mode discovery (main paper §3.3, supplement §2.2) -------------------------------------------
+
+K_RANGE = (3, 11)
+MIN_MEMBERS = 10  # components with fewer members are dropped as noise
+
+
+@dataclass
+class ActionModes:
+    """A Gaussian mixture over one action's codes. weights follow the member counts."""
+
+    means: np.ndarray  # (K, D)
+    covariances: np.ndarray  # (K, D, D)
+    counts: np.ndarray  # (K,) training codes assigned to each kept component
+    silhouettes: dict[int, float] = field(default_factory=dict)  # k -> S_k
+    note: str = ""  # why discovery fell back, when it did
+
+    @property
+    def weights(self) -> np.ndarray:
+        return self.counts / self.counts.sum()
+
+    def to_plain(self) -> dict:
+        return {"means": torch.from_numpy(self.means), "covariances": torch.from_numpy(self.covariances),
+                "counts": torch.from_numpy(self.counts), "ks": list(self.silhouettes),
+                "silhouettes": list(self.silhouettes.values()), "note": self.note}
+
+    @classmethod
+    def from_plain(cls, d: dict) -> "ActionModes":
+        return cls(d["means"].numpy(), d["covariances"].numpy(), d["counts"].numpy(),
+                   dict(zip(d["ks"], d["silhouettes"])), d["note"])
+
+
+def choose_k(silhouettes: dict[int, float]) -> int:
+    """The first i (from the smallest k) with S_i > 0.95 S_{i+1}; the largest k if none."""
+    ks = sorted(silhouettes)
+    for i, j in zip(ks[:-1], ks[1:]):
+        if silhouettes[i] > 0.95 * silhouettes[j]:
+            return i
+    return ks[-1]
+
+
+def _gmm(codes: np.ndarray, k: int, seed: int):
+    from sklearn.mixture import GaussianMixture  # imported here: sampling needs no sklearn
+
+    return GaussianMixture(n_components=k, covariance_type="full", n_init=3, reg_covar=1e-4,
+                           random_state=seed).fit(codes)
+
+
+def single_gaussian(codes: np.ndarray, note: str = "") -> ActionModes:
+    d = codes.shape[1]
+    cov = np.cov(codes, rowvar=False) if len(codes) > 1 else np.zeros((d, d))
+    cov = np.atleast_2d(cov) + 1e-4 * np.eye(d)
+    return ActionModes(codes.mean(0, keepdims=True), cov[None], np.array([len(codes)], dtype=np.int64), {}, note)
+
+
+def discover_modes(codes: np.ndarray, seed: int = 0, k_range: tuple[int, int] = K_RANGE,
+                   min_members: int = MIN_MEMBERS) -> ActionModes:
+    """Fit GMMs with k in k_range to one action's codes (N, D), pick k by the silhouette rule,
+    refit, and drop components with fewer than min_members codes."""
+    codes = np.unique(codes.astype(np.float64), axis=0)
+    lo, hi = k_range
+    if len(codes) < lo * min_members:
+        return single_gaussian(codes, f"{len(codes)} clips are too few for {lo} modes of {min_members}: one Gaussian")
+    silhouettes = {}
+    for k in range(lo, min(hi, len(codes) - 1) + 1):
+        labels = _gmm(codes, k, seed).predict(codes)
+        if len(np.unique(labels)) < 2:
+            silhouettes[k] = -1.0
+            continue
+        silhouettes[k] = float(_silhouette(codes, labels))
+    gmm = _gmm(codes, choose_k(silhouettes), seed)
+    counts = np.bincount(gmm.predict(codes), minlength=gmm.n_components)
+    keep = counts >= min_members
+    if not keep.any():
+        return single_gaussian(codes, "no component kept 10 members: one Gaussian")
+    return ActionModes(gmm.means_[keep], gmm.covariances_[keep], counts[keep].astype(np.int64), silhouettes)
+
+
+def _silhouette(codes: np.ndarray, labels: np.ndarray) -> float:
+    from sklearn.metrics import silhouette_score
+
+    return silhouette_score(codes, labels)
+
+
+def fit_modes(bank: dict, n_classes: int, seed: int = 0) -> dict:
+    """Mode mixtures per action plus one Gaussian per action (the paper's ODMO_conv), as plain values."""
+    codes, labels = bank["codes"].numpy(), bank["labels"].numpy()
+    per_action = [discover_modes(codes[labels == c], seed) for c in range(n_classes)]
+    conventional = [single_gaussian(codes[labels == c].astype(np.float64)) for c in range(n_classes)]
+    return {"seed": seed, "actions": [m.to_plain() for m in per_action],
+            "conventional": [m.to_plain() for m in conventional]}
+
+
+def sample_codes(modes: ActionModes, n: int, rng: np.random.Generator, mode: int | None = None,
+                 weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """n codes (n, D) and their component ids (n,): from one component, from given weights, or
+    mode-preserving (components drawn in proportion to their member counts)."""
+    k = len(modes.means)
+    if mode is not None:
+        ids = np.full(n, mode, dtype=np.int64)
+    else:
+        p = modes.weights if weights is None else np.asarray(weights, dtype=np.float64) / np.sum(weights)
+        ids = rng.choice(k, size=n, p=p)
+    eps = rng.standard_normal((n, modes.means.shape[1]))
+    chol = np.linalg.cholesky(modes.covariances)  # (K, D, D)
+    codes = modes.means[ids] + np.einsum("nij,nj->ni", chol[ids], eps)
+    return codes.astype(np.float32), ids
+
+
+def knn_end_points(bank_codes: np.ndarray, bank_ends: np.ndarray, codes: np.ndarray, k: int = 1) -> np.ndarray:
+    """End point of each code (n, D) as the mean end point of its k nearest bank codes (n, 3)."""
+    d = np.linalg.norm(codes[:, None, :] - bank_codes[None], axis=-1)  # (n, N)
+    nearest = np.argsort(d, axis=1)[:, :k]
+    return bank_ends[nearest].mean(1).astype(np.float32)
+
+
+def assign(modes: ActionModes, codes: np.ndarray) -> np.ndarray:
+    """Most likely component of each code (N, D) -> (N,)."""
+    from scipy.stats import multivariate_normal
+
+    logp = np.stack([np.log(w) + multivariate_normal(m, c, allow_singular=True).logpdf(codes)
+                     for m, c, w in zip(modes.means, modes.covariances, modes.weights)], axis=-1)
+    return np.atleast_2d(logp).argmax(-1)
+
+
+def mode_report(bank: dict, modes: dict, actions: list[str]) -> list[dict]:
+    """Per action: modes found, member counts, silhouettes and, where the bank has ground-truth
+    modes, the adjusted Rand index between discovered and true modes."""
+    from sklearn.metrics import adjusted_rand_score
+
+    codes, labels, truth = bank["codes"].numpy(), bank["labels"].numpy(), bank["modes"].numpy()
+    rows = []
+    for a, name in enumerate(actions):
+        m = ActionModes.from_plain(modes["actions"][a])
+        own = labels == a
+        row = {"action": name, "clips": int(own.sum()), "modes": len(m.means), "members": m.counts.tolist(),
+               "silhouettes": {int(k): round(v, 4) for k, v in m.silhouettes.items()}, "note": m.note,
+               "true_modes": None, "ari": None}
+        t = truth[own]
+        if own.any() and (t >= 0).all():
+            row["true_modes"] = int(len(np.unique(t)))
+            row["ari"] = float(adjusted_rand_score(t, assign(m, codes[own].astype(np.float64))))
+        rows.append(row)
+    return rows

@@ -245,7 +245,7 @@ class TrainResult:
 
 def finish(trainer: Trainer) -> dict:
     """Latent bank, held-out reconstruction and latent separation; written into the checkpoint."""
-    from odmo_cli.latent import latent_bank, separation
+    from odmo_cli.latent import fit_modes, latent_bank, separation
 
     model, clips = trainer.model, trainer.clips
     bank = latent_bank(model, clips, trainer.train_idx)
@@ -258,7 +258,8 @@ def finish(trainer: Trainer) -> dict:
                      held_bank["labels"].numpy(), trainer.cfg.n_classes),
         "alpha": trainer.cfg.alpha,
     }
-    trainer.save({"latent_bank": bank, "report": report})
+    modes = fit_modes(bank, trainer.cfg.n_classes, seed=trainer.tc.seed)
+    trainer.save({"latent_bank": bank, "modes": modes, "report": report})
     return report
 
 

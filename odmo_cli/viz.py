@@ -86,3 +86,45 @@ def animate(motions: np.ndarray, skeleton: Skeleton, out: str | Path, fps: float
             anim.save(str(tmp), writer=PillowWriter(fps=fps), dpi=60)
     plt.close(fig)
     return out
+
+
+def latent_plot(codes: np.ndarray, colours: np.ndarray, names: Sequence[str], out: str | Path,
+                method: str = "pca", gaussians: Sequence[tuple[np.ndarray, np.ndarray]] = (),
+                seed: int = 0, title: str = "") -> Path:
+    """Codes (N, D) projected to 2-D (pca or tsne), coloured by integer group; for PCA, the
+    half-peak ellipse of each Gaussian (mean (D,), covariance (D, D)) is drawn too."""
+    out = Path(out)
+    if out.suffix.lower() not in (".png", ".pdf", ".svg"):
+        raise UserError(f"cannot plot to {out.name}: valid extensions are .png, .pdf, .svg")
+    if method == "pca":
+        centre = codes.mean(0)
+        _, _, vt = np.linalg.svd(codes - centre, full_matrices=False)
+        basis = vt[:2].T  # (D, 2)
+        xy = (codes - centre) @ basis
+    elif method == "tsne":
+        from sklearn.manifold import TSNE
+
+        xy = TSNE(n_components=2, random_state=seed, init="pca",
+                  perplexity=min(30, max(2, len(codes) // 4))).fit_transform(codes)
+    else:
+        raise UserError(f"unknown projection {method!r}; valid: pca, tsne")
+    fig, ax = plt.subplots(figsize=(7, 6))
+    for g in np.unique(colours):
+        sel = colours == g
+        ax.scatter(xy[sel, 0], xy[sel, 1], s=8, color=f"C{g % 10}", label=names[g] if g < len(names) else str(g))
+    if method == "pca":
+        from matplotlib.patches import Ellipse
+
+        r = np.sqrt(2 * np.log(2))  # the half-peak contour of a Gaussian
+        for mean, cov in gaussians:
+            c2 = basis.T @ cov @ basis
+            vals, vecs = np.linalg.eigh(c2)
+            angle = np.degrees(np.arctan2(vecs[1, 1], vecs[0, 1]))
+            ax.add_patch(Ellipse(((mean - centre) @ basis), 2 * r * np.sqrt(vals[1]), 2 * r * np.sqrt(vals[0]),
+                                 angle=angle, fill=False, lw=1, color="0.2"))
+    ax.legend(fontsize=7, markerscale=2, loc="best")
+    ax.set_title(title or f"latent codes ({method.upper()})")
+    with atomic_path(out, suffix=out.suffix) as tmp:
+        fig.savefig(tmp, dpi=100, format=out.suffix[1:])
+    plt.close(fig)
+    return out

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import csv
+import os
 import shutil
 import tempfile
 from dataclasses import dataclass, field
@@ -124,12 +125,17 @@ def write_folder(clips: ClipSet, out: Path) -> None:
     try:
         with open(tmp / "index.csv", "w", newline="") as f:
             writer = csv.writer(f)
-            writer.writerow(["motion", "action", "mode", "subject"])
+            has_split = any(clips.splits)  # keep a source motion folder's train/val/test split
+            writer.writerow(["motion", "action", "mode", "subject"] + (["split"] if has_split else []))
             for i, name in enumerate(clips.names):
                 writer.writerow([name, manifest.actions[clips.labels[i]].name, int(clips.modes[i]),
-                                 clips.subjects[i] if clips.subjects else ""])
+                                 clips.subjects[i] if clips.subjects else ""]
+                                + ([clips.splits[i]] if has_split else []))
                 np.save(tmp / f"{name}.npy", clips.motions[i].astype(np.float32))
         (tmp / FOLDER_MANIFEST).write_text(manifest_toml(manifest, manifest.name))
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes 0700; give the folder the usual permissions
         tmp.rename(out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)

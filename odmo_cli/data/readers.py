@@ -170,5 +170,9 @@ def _folder_rows(root: Path, manifest: Manifest, problems: list[str]):
             problems.append(f"{path.name}: listed in index.csv but missing")
             continue
         mode = row.get("mode") or "-1"
-        yield {"path": path, "name": row["motion"], "label": label, "mode": int(mode),
+        try:
+            mode = int(mode)
+        except ValueError:
+            raise UserError(f"{index}: mode {mode!r} of {row['motion']} is not an integer") from None
+        yield {"path": path, "name": row["motion"], "label": label, "mode": mode,
                "subject": row.get("subject") or "", "split": row.get("split") or ""}

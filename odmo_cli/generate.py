@@ -1,0 +1,249 @@
+"""Generation with a trained ODMO checkpoint: sample, interpolate, customise end points.
+
+Everything here needs only the checkpoint (weights, latent bank, fitted mode mixtures), never
+the dataset. Motions are decoded in batches, so memory stays flat in the number asked for.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from odmo_cli.data.manifest import normalize_action
+from odmo_cli.errors import UserError
+from odmo_cli.io import load_checkpoint, save_npz
+from odmo_cli.latent import ActionModes, fit_modes, knn_end_points, sample_codes
+from odmo_cli.models.odmo import ODMO, ODMOConfig
+from odmo_cli.skeletons import get_skeleton
+
+SAMPLING = ("mode-preserving", "conventional")
+SHIPPED = {"humanact12": "odmo_humanact12.pt", "cmu": "odmo_cmu.pt", "cmu_mocap": "odmo_cmu.pt"}
+
+
+@dataclass
+class LoadedODMO:
+    model: ODMO
+    dataset: dict  # name, actions, skeleton, fps, length, up_axis
+    bank: dict
+    modes: dict
+    source: str
+
+    @property
+    def actions(self) -> list[str]:
+        return list(self.dataset["actions"])
+
+    def action_index(self, name: str) -> int:
+        key = normalize_action(name)
+        if key in self.actions:
+            return self.actions.index(key)
+        raise UserError(f"unknown action {name!r}; valid: {', '.join(self.actions)}, all")
+
+    def action_modes(self, action: int, sampling: str = "mode-preserving") -> ActionModes:
+        group = "actions" if sampling == "mode-preserving" else "conventional"
+        return ActionModes.from_plain(self.modes[group][action])
+
+
+def shipped_path(name: str) -> Path | None:
+    path = Path(str(resources.files("odmo_cli") / "assets" / "models" / SHIPPED[name]))
+    return path if path.is_file() else None
+
+
+def load_odmo(spec: str | Path | None) -> LoadedODMO:
+    """A checkpoint path, or a shipped model's short name (humanact12, cmu); None: the default."""
+    spec = str(spec or "humanact12")
+    if spec in SHIPPED:
+        path = shipped_path(spec)
+        if path is None:
+            raise UserError(f"no shipped model {spec!r} in this install; pass --model with a checkpoint path")
+    else:
+        path = Path(spec)
+    ckpt = load_checkpoint(path)
+    if ckpt.get("kind") != "odmo":
+        raise UserError(f"{path} holds a {ckpt.get('kind')!r} model; this command needs an ODMO checkpoint")
+    if "latent_bank" not in ckpt:
+        raise UserError(f"{path} has no latent bank: its training did not finish (resume it to the end)")
+    model = ODMO(ODMOConfig.from_dict(ckpt["config"]))
+    model.load_state_dict(ckpt["state_dict"])
+    model.eval()
+    modes = ckpt.get("modes") or fit_modes(ckpt["latent_bank"], model.cfg.n_classes)
+    return LoadedODMO(model, ckpt["dataset"], ckpt["latent_bank"], modes, str(path))
+
+
+@dataclass
+class MotionBatch:
+    """What `odmo sample` writes (DESIGN.md, Samples)."""
+
+    motions: np.ndarray  # (N, T, J, 3) float32
+    actions: np.ndarray  # (N,) str
+    modes: np.ndarray  # (N,) int, -1 when not mode-aware
+    codes: np.ndarray  # (N, D)
+    end_points: np.ndarray  # (N, 3) asked end points
+    dataset: dict
+    model: str
+    seed: int
+    end_axes: tuple[int, ...] = ()  # axes the user fixed, for dist_e
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def reached(self) -> np.ndarray:
+        return self.motions[:, -1, 0]  # (N, 3) root at the last frame
+
+    def dist_e(self) -> float | None:
+        """Mean squared distance between asked and reached end points over the fixed axes."""
+        if not self.end_axes:
+            return None
+        axes = list(self.end_axes)
+        return float(np.mean(np.sum((self.end_points[:, axes] - self.reached[:, axes]) ** 2, axis=1)))
+
+    def save(self, path: str | Path) -> None:
+        sk = get_skeleton(self.dataset["skeleton"])
+        save_npz(path, motions=self.motions, actions=self.actions.astype(str), modes=self.modes,
+                 codes=self.codes, end_points=self.end_points, fps=np.float32(self.dataset["fps"]),
+                 skeleton=np.str_(sk.name), joint_names=np.array(sk.joint_names), parents=np.array(sk.parents),
+                 up_axis=np.str_(self.dataset["up_axis"]), model=np.str_(self.model), seed=np.int64(self.seed),
+                 **self.extra)
+
+
+@torch.inference_mode()
+def decode(loaded: LoadedODMO, codes: np.ndarray, labels: np.ndarray, end_points: np.ndarray,
+           batch: int = 1000) -> np.ndarray:
+    """Codes (N, D), labels (N,), end points (N, 3) -> motions (N, T, J, 3), batch by batch."""
+    cfg = loaded.model.cfg
+    out = np.empty((len(codes), cfg.length, cfg.n_joints, 3), dtype=np.float32)
+    for b in range(0, len(codes), batch):
+        z = torch.from_numpy(np.ascontiguousarray(codes[b:b + batch], dtype=np.float32))
+        lab = torch.from_numpy(np.asarray(labels[b:b + batch], dtype=np.int64))
+        end = torch.from_numpy(np.ascontiguousarray(end_points[b:b + batch], dtype=np.float32))
+        _, motion = loaded.model.decode(z, lab, end)
+        out[b:b + batch] = motion.numpy()
+    return out
+
+
+def parse_point(text: str, up_axis: int, name: str = "--end") -> tuple[np.ndarray, tuple[int, ...]]:
+    """'x,z' (ground plane) or 'x,y,z' -> (3-vector with NaN where not given, the axes given)."""
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) not in (2, 3) or not np.all(np.isfinite(values)):
+        raise UserError(f"{name} must be two (ground plane) or three comma-separated numbers, got {text!r}")
+    point = np.full(3, np.nan, dtype=np.float32)
+    axes = tuple(i for i in range(3) if i != up_axis) if len(values) == 2 else (0, 1, 2)
+    point[list(axes)] = values
+    return point, axes
+
+
+def _end_points(loaded: LoadedODMO, action: int, codes: np.ndarray, fixed: np.ndarray | None) -> np.ndarray:
+    """KNN end points from the bank's codes of this action; user-fixed coordinates override them."""
+    labels = loaded.bank["labels"].numpy()
+    own = labels == action
+    ends = knn_end_points(loaded.bank["codes"].numpy()[own], loaded.bank["end_points"].numpy()[own], codes)
+    if fixed is not None:
+        given = ~np.isnan(fixed)
+        ends[:, given] = fixed[given]
+    return ends
+
+
+def sample(loaded: LoadedODMO, actions: list[str], n: int, seed: int = 0, mode: int | None = None,
+           mode_weights: list[float] | None = None, sampling: str = "mode-preserving",
+           end: str | None = None, end_from: str | None = None, end_to: str | None = None,
+           steps: int = 10) -> MotionBatch:
+    """n motions per action. With end/end_from+end_to every motion is asked to end there."""
+    if n <= 0:
+        raise UserError(f"--n must be a positive number of motions, got {n}")
+    if sampling not in SAMPLING:
+        raise UserError(f"unknown sampling {sampling!r}; valid: {', '.join(SAMPLING)}")
+    if mode_weights is not None and (any(w < 0 for w in mode_weights) or sum(mode_weights) <= 0):
+        raise UserError("--mode-weights must be non-negative numbers with a positive sum")
+    up = get_skeleton(loaded.dataset["skeleton"]).up_index
+    targets, axes = _end_targets(end, end_from, end_to, steps, up)
+    idx = list(range(len(loaded.actions))) if actions == ["all"] else [loaded.action_index(a) for a in actions]
+    rng = np.random.default_rng(seed)
+    parts = []
+    for a in idx:
+        modes = loaded.action_modes(a, sampling)
+        k = len(modes.means)
+        if mode is not None and not 0 <= mode < k:
+            raise UserError(f"--mode {mode} is out of range: {loaded.actions[a]} has {k} modes (0..{k - 1})")
+        if mode_weights is not None and len(mode_weights) != k:
+            raise UserError(f"--mode-weights has {len(mode_weights)} values; {loaded.actions[a]} has {k} modes")
+        codes, ids = sample_codes(modes, n, rng, mode, mode_weights)
+        if sampling == "conventional":
+            ids = np.full(n, -1)
+        for target in targets:
+            parts.append((a, codes, ids, _end_points(loaded, a, codes, target)))
+    labels = np.concatenate([np.full(len(p[1]), p[0]) for p in parts])
+    codes = np.concatenate([p[1] for p in parts])
+    ends = np.concatenate([p[3] for p in parts])
+    motions = decode(loaded, codes, labels, ends)
+    return MotionBatch(motions, np.array(loaded.actions)[labels], np.concatenate([p[2] for p in parts]),
+                       codes, ends, loaded.dataset, loaded.source, seed, axes)
+
+
+def _end_targets(end, end_from, end_to, steps, up) -> tuple[list[np.ndarray | None], tuple[int, ...]]:
+    if end is not None and (end_from or end_to):
+        raise UserError("give either --end or --end-from/--end-to, not both")
+    if end is not None:
+        point, axes = parse_point(end, up)
+        return [point], axes
+    if end_from or end_to:
+        if not (end_from and end_to):
+            raise UserError("--end-from and --end-to go together")
+        if steps < 2:
+            raise UserError(f"--steps must be at least 2, got {steps}")
+        a, axes = parse_point(end_from, up, "--end-from")
+        b, axes_b = parse_point(end_to, up, "--end-to")
+        if axes != axes_b:
+            raise UserError("--end-from and --end-to must have the same number of coordinates")
+        return [a + (b - a) * s for s in np.linspace(0, 1, steps, dtype=np.float32)], axes
+    return [None], ()
+
+
+def interpolate(loaded: LoadedODMO, action: str, steps: int = 8, from_mode: int | None = None,
+                to_mode: int | None = None, from_code: int | None = None, to_code: int | None = None,
+                end: str | None = None, seed: int = 0) -> MotionBatch:
+    """One motion per step on the line between two modes' means (or two latent-bank codes)."""
+    if steps < 2:
+        raise UserError(f"--steps must be at least 2, got {steps}")
+    a = loaded.action_index(action)
+    if (from_mode is None) == (from_code is None) or (to_mode is None) == (to_code is None):
+        raise UserError("give --from-mode or --from-code, and --to-mode or --to-code")
+    modes = loaded.action_modes(a)
+    bank = loaded.bank["codes"].numpy()
+
+    def endpoint(mode, code, flag):
+        if mode is not None:
+            if not 0 <= mode < len(modes.means):
+                raise UserError(f"{flag}-mode {mode} is out of range: {loaded.actions[a]} has "
+                                f"{len(modes.means)} modes (0..{len(modes.means) - 1})")
+            return modes.means[mode].astype(np.float32)
+        if not 0 <= code < len(bank):
+            raise UserError(f"{flag}-code {code} is out of range: the latent bank has {len(bank)} codes (0..{len(bank) - 1})")
+        return bank[code]
+
+    start, stop = endpoint(from_mode, from_code, "--from"), endpoint(to_mode, to_code, "--to")
+    w = np.linspace(0, 1, steps, dtype=np.float32)[:, None]
+    codes = (1 - w) * start + w * stop  # (steps, D)
+    up = get_skeleton(loaded.dataset["skeleton"]).up_index
+    fixed, axes = parse_point(end, up) if end else (None, ())
+    ends = _end_points(loaded, a, codes, fixed)
+    motions = decode(loaded, codes, np.full(steps, a), ends)
+    return MotionBatch(motions, np.array([loaded.actions[a]] * steps), np.full(steps, -1), codes, ends,
+                       loaded.dataset, loaded.source, seed, axes, extra={"weights": w[:, 0]})
+
+
+def refit_modes(loaded: LoadedODMO, seed: int = 0) -> None:
+    """Refit the mode mixtures from the latent bank and save them into the checkpoint (atomically)."""
+    from odmo_cli.io import save_checkpoint
+
+    loaded.modes = fit_modes(loaded.bank, loaded.model.cfg.n_classes, seed)
+    assets = Path(str(resources.files("odmo_cli") / "assets")).resolve()
+    if Path(loaded.source).resolve().is_relative_to(assets):
+        return  # never rewrite the shipped files; the refit serves this run only
+    ckpt = load_checkpoint(loaded.source)
+    ckpt["modes"] = loaded.modes
+    save_checkpoint(loaded.source, ckpt)
