@@ -124,7 +124,16 @@ def discover_modes(codes: np.ndarray, seed: int = 0, k_range: tuple[int, int] = 
                    min_members: int = MIN_MEMBERS) -> ActionModes:
     """Fit GMMs with k in k_range to one action's codes (N, D), pick k by the silhouette rule,
     refit, and drop components with fewer than min_members codes."""
-    codes = np.unique(codes.astype(np.float64), axis=0)
+    import sklearn.metrics  # noqa: F401  loaded before the limit below, which binds loaded libraries only
+    import sklearn.mixture  # noqa: F401
+    from threadpoolctl import threadpool_limits
+
+    # small matrices: threaded BLAS only adds overhead (x10 slower with another job running)
+    with threadpool_limits(1):
+        return _discover(np.unique(codes.astype(np.float64), axis=0), seed, k_range, min_members)
+
+
+def _discover(codes: np.ndarray, seed: int, k_range: tuple[int, int], min_members: int) -> ActionModes:
     lo, hi = k_range
     if len(codes) < lo * min_members:
         return single_gaussian(codes, f"{len(codes)} clips are too few for {lo} modes of {min_members}: one Gaussian")

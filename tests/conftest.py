@@ -216,3 +216,69 @@ def cmu_fixture(tmp_path: Path) -> Path:
 
 
 # ============================ end of the datasets section ============================
+
+
+# =====================================================================================
+# A tiny trained ODMO: straight-line motions of a rigid body (test_generate, test_evaluate).
+# =====================================================================================
+
+MANIFEST = """name = "lines"
+title = "synthetic straight-line walks"
+format = "folder"
+skeleton = "cmu20"
+up_axis = "+y"
+fps = 10
+clip_length = 12
+
+[[actions]]
+name = "glide"
+[[actions]]
+name = "crouch"
+"""
+
+
+def write_lines(folder, per_action=40, length=12, seed=0):
+    """Rigid bodies moving on straight lines from the origin to a random ground-plane end point;
+    the two actions differ in pose, and each action has two speeds (modes)."""
+    rng = np.random.default_rng(seed)
+    folder.mkdir()
+    (folder / "dataset.toml").write_text(MANIFEST)
+    base = rng.normal(0, 0.3, (20, 3)).astype(np.float32)
+    base[0] = 0
+    rows = ["motion,action,mode"]
+    for a, name in enumerate(["glide", "crouch"]):
+        pose = base * (1.0 if a == 0 else 0.5)
+        for i in range(per_action):
+            mode = i % 2
+            end = rng.uniform(-1, 1, 2) * (0.5 + mode)
+            t = np.linspace(0, 1, length)[:, None]
+            root = np.stack([end[0] * t[:, 0], np.zeros(length), end[1] * t[:, 0]], -1)
+            motion = root[:, None, :] + pose[None]
+            np.save(folder / f"{name}{i}.npy", motion.astype(np.float32))
+            rows.append(f"{name}{i},{name},{mode}")
+    (folder / "index.csv").write_text("\n".join(rows) + "\n")
+    return folder
+
+
+@pytest.fixture(scope="session")
+def lines_folder(tmp_path_factory):
+    return write_lines(tmp_path_factory.mktemp("data") / "lines")
+
+
+@pytest.fixture(scope="session")
+def lines_model(tmp_path_factory, lines_folder):
+    import torch
+
+    from odmo_cli.data.locate import resolve
+    from odmo_cli.data.readers import read_dataset
+    from odmo_cli.train import TrainConfig, train_odmo
+
+    torch.set_num_threads(1)
+    manifest, root = resolve(lines_folder)
+    clips = read_dataset(root, manifest)
+    overrides = {"motion_hidden": 32, "traj_hidden": 32, "encoder_fc": 32, "latent_dim": 4}
+    tc = TrainConfig(epochs=150, batch_size=40, val_fraction=0.0, val_every=0, checkpoint_every=0,
+                     pairs_per_epoch=160, seed=0, lr=1e-2, lr_final=1e-3, tf_epochs=75)
+    out = tmp_path_factory.mktemp("model") / "lines.pt"
+    train_odmo(clips, tc, out, overrides)
+    return out

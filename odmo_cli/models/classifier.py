@@ -291,7 +291,7 @@ def check_matches(model: MotionClassifier, manifest: Manifest) -> None:
 
 # -- training ------------------------------------------------------------------------------------
 
-SAMPLINGS = ("shuffle", "balanced")
+SAMPLINGS = ("shuffle", "balanced", "length")
 
 
 @dataclass
@@ -303,8 +303,12 @@ class ClassifierTrainConfig:
     weight_decay: float = 0.0
     dropout: float = 0.0  # between GRU layers, training only
     rotate: float = 0.0  # augmentation: random rotation about the up axis, up to this many degrees
+    mirror: bool = False  # augmentation: half the crops mirrored (left/right joints swapped)
+    speed: float = 1.0  # augmentation: playback speed drawn log-uniformly in [1/speed, speed]
     val_fraction: float = 0.2
-    sampling: str = "shuffle"  # "shuffle": every training clip once per epoch; "balanced": classes equally likely
+    # "shuffle": every training clip once per epoch; "length": every clip ceil(frames / T) times
+    # (long clips give more crops); "balanced": as many draws as clips, classes equally likely
+    sampling: str = "shuffle"
     crop: str = "random"  # "random": a random T-frame crop of every clip each epoch; "start": the first T frames
     grad_clip: float = 1.0  # max gradient norm; 0 disables
     seed: int = 0
@@ -319,6 +323,8 @@ class ClassifierTrainConfig:
             raise UserError(f"learning rate must be positive, got {self.lr} (final {self.lr_final})")
         if not 0 <= self.dropout < 1:
             raise UserError(f"dropout must be in [0, 1), got {self.dropout}")
+        if not 1.0 <= self.speed <= 4.0:
+            raise UserError(f"speed must be in [1, 4] (1: no change), got {self.speed}")
         if not 0 <= self.rotate <= 180 or self.weight_decay < 0:
             raise UserError(f"rotate must be in [0, 180] degrees and weight decay >= 0, got {self.rotate}, {self.weight_decay}")
         if not 0 <= self.val_fraction < 1:
@@ -343,13 +349,56 @@ class ClassifierTrainConfig:
         return self.lr_final + 0.5 * (self.lr - self.lr_final) * (1 + math.cos(math.pi * frac))
 
 
-def crop_batch(clips: ClipSet, idx: np.ndarray, length: int, rng: np.random.Generator | None = None) -> np.ndarray:
-    """(len(idx), length, J, 3) float32: random crops when `rng` is given, else the first frames."""
+def crop_batch(clips: ClipSet, idx: np.ndarray, length: int, rng: np.random.Generator | None = None,
+               speed: float = 1.0) -> np.ndarray:
+    """(len(idx), length, J, 3) float32: random crops when `rng` is given, else the first frames.
+
+    speed > 1 (needs rng): each clip is replayed at a random speed in [1/speed, speed] (linear
+    interpolation between frames) before its random crop.
+    """
     out = np.empty((len(idx), length) + clips.motions[0].shape[1:], dtype=np.float32)
     for k, i in enumerate(idx):
         m = clips.motions[int(i)]
+        if rng is not None and speed > 1.0:
+            m = _resample(m, float(np.exp(rng.uniform(-np.log(speed), np.log(speed)))))
         start = random_start(len(m), length, rng) if rng is not None else 0
         out[k] = crop_pad_shift(m, length, start)
+    return out
+
+
+def _resample(motion: np.ndarray, rate: float) -> np.ndarray:
+    """The clip played `rate` times as fast: frame t of the result is source time t * rate."""
+    n = max(1, int((len(motion) - 1) / rate) + 1)
+    t = np.minimum(np.arange(n) * rate, len(motion) - 1)
+    i0 = np.floor(t).astype(np.int64)
+    i1 = np.minimum(i0 + 1, len(motion) - 1)
+    w = (t - i0).astype(np.float32)[:, None, None]
+    return motion[i0] * (1 - w) + motion[i1] * w
+
+
+def mirror_map(joint_names) -> list[int]:
+    """Joint permutation swapping left_*/right_* (or *_a/*_b) partners; unpaired joints stay."""
+    names = list(joint_names)
+    swaps = (("left_", "right_"), ("right_", "left_"))
+    perm = []
+    for j, name in enumerate(names):
+        partner = name
+        for a, b in swaps:
+            if name.startswith(a):
+                partner = b + name[len(a):]
+        for a, b in (("_a", "_b"), ("_b", "_a")):
+            if name.endswith(a):
+                partner = name[:-len(a)] + b
+        perm.append(names.index(partner) if partner in names else j)
+    return perm
+
+
+def mirror_half(motions: np.ndarray, perm: list[int], axis: int, rng: np.random.Generator) -> np.ndarray:
+    """Mirror a random half of (N, T, J, 3) motions: swap partner joints, negate `axis`."""
+    flip = rng.random(len(motions)) < 0.5
+    out = motions.copy()
+    out[flip] = motions[flip][:, :, perm]
+    out[flip, ..., axis] *= -1
     return out
 
 
@@ -408,6 +457,10 @@ def train_classifier(clips: ClipSet, tc: ClassifierTrainConfig, out: str | Path,
         val_y = labels[val_idx]
         val_x_rand = crop_batch(clips, val_idx, length, np.random.default_rng(tc.seed + 1))
         train_labels = labels[train_idx]
+        skeleton = manifest.skeleton
+        perm = mirror_map(skeleton.joint_names)
+        n_crops = [max(1, math.ceil(len(clips.motions[i]) / length)) for i in train_idx]
+        repeats = np.repeat(train_idx, n_crops)
         by_class = [train_idx[train_labels == c] for c in np.unique(train_labels)]
         history = []
         start_time = time.perf_counter()
@@ -419,10 +472,15 @@ def train_classifier(clips: ClipSet, tc: ClassifierTrainConfig, out: str | Path,
             if tc.sampling == "balanced":
                 picks = rng.integers(0, len(by_class), size=len(train_idx))
                 order = np.array([by_class[k][rng.integers(len(by_class[k]))] for k in picks], dtype=np.int64)
+            elif tc.sampling == "length":
+                order = repeats[rng.permutation(len(repeats))]
             else:
                 order = train_idx[rng.permutation(len(train_idx))]
-            x = crop_batch(clips, order, length, rng if tc.crop == "random" else None)
-            x = torch.from_numpy(rotate_up(x, manifest.skeleton.up_index, tc.rotate, rng))
+            x = crop_batch(clips, order, length, rng if tc.crop == "random" else None, tc.speed)
+            x = rotate_up(x, skeleton.up_index, tc.rotate, rng)
+            if tc.mirror:
+                x = mirror_half(x, perm, skeleton.ground_axes[0], rng)
+            x = torch.from_numpy(x)
             y = torch.from_numpy(labels[order])
             loss_sum, correct = 0.0, 0
             for b in range(0, len(order), tc.batch_size):

@@ -1,0 +1,182 @@
+"""`odmo bench`: speed and memory on this machine, each figure the median of several runs.
+
+Figures: sampling throughput (motions/s for n = 1000 after load), model load time, end-to-end
+`odmo sample --n 20` wall time (a fresh process), peak RSS of `odmo sample --n 10000`, training
+s/epoch and clips/s on HumanAct12 and CMU MoCap, and the evaluation protocol's wall time.
+Without a trained model the generator figures use a randomly initialised network of the same
+shapes (speed does not depend on the weights) and say so.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+
+@dataclass
+class Figure:
+    name: str
+    unit: str
+    runs: list[float]
+    note: str = ""
+
+    def to_json(self) -> dict:
+        return {"name": self.name, "unit": self.unit, "median": statistics.median(self.runs),
+                "min": min(self.runs), "max": max(self.runs), "runs": len(self.runs), "note": self.note}
+
+
+@dataclass
+class BenchReport:
+    machine: dict
+    figures: list[Figure] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+
+
+def machine() -> dict:
+    return {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
+            "torch": torch.__version__, "threads": torch.get_num_threads(), "python": platform.python_version()}
+
+
+def _timed(fn: Callable[[], object], runs: int, warmup: int = 1) -> list[float]:
+    for _ in range(warmup):
+        fn()
+    out = []
+    for _ in range(runs):
+        t = time.perf_counter()
+        fn()
+        out.append(time.perf_counter() - t)
+    return out
+
+
+def random_checkpoint(dataset: str, folder: Path) -> Path:
+    """An untrained ODMO checkpoint with the dataset's shapes and a random latent bank."""
+    from odmo_cli.data.manifest import load_manifest
+    from odmo_cli.io import save_checkpoint
+    from odmo_cli.latent import fit_modes
+    from odmo_cli.models.odmo import ODMO, ODMOConfig
+
+    m = load_manifest(dataset)
+    cfg = ODMOConfig(n_joints=m.skeleton.n_joints, n_classes=len(m.actions), length=m.clip_length,
+                     up_axis=m.skeleton.up_index)
+    torch.manual_seed(0)
+    model = ODMO(cfg)
+    rng = np.random.default_rng(0)
+    n = 40 * cfg.n_classes
+    bank = {"codes": torch.from_numpy(rng.normal(size=(n, cfg.latent_dim)).astype(np.float32)),
+            "labels": torch.arange(n) % cfg.n_classes, "end_points": torch.zeros(n, 3),
+            "modes": torch.full((n,), -1), "names": [str(i) for i in range(n)]}
+    path = folder / f"random_{dataset}.pt"
+    save_checkpoint(path, {"format_version": 1, "kind": "odmo", "config": cfg.to_dict(),
+                           "dataset": {"name": m.name, "actions": list(m.action_names), "skeleton": m.skeleton_name,
+                                       "fps": m.fps, "length": m.clip_length, "up_axis": m.up_axis},
+                           "state_dict": model.state_dict(), "latent_bank": bank,
+                           "modes": fit_modes(bank, cfg.n_classes)})
+    return path
+
+
+def bench_sampling(model_path: Path, runs: int, note: str) -> list[Figure]:
+    from odmo_cli.generate import load_odmo, sample
+
+    loads = _timed(lambda: load_odmo(model_path), runs)
+    loaded = load_odmo(model_path)
+    per = max(1, 1000 // len(loaded.actions))
+    n = per * len(loaded.actions)
+    times = _timed(lambda: sample(loaded, ["all"], per, seed=0), runs)
+    return [Figure("model load", "s", loads, note),
+            Figure(f"sampling throughput (n = {n}, T = {loaded.model.cfg.length})", "motions/s",
+                   [n / t for t in times], note)]
+
+
+def _cli(args: list[str]) -> list[str]:
+    return [sys.executable, "-m", "odmo_cli", *args]
+
+
+def bench_end_to_end(model_path: Path, runs: int, note: str, folder: Path) -> list[Figure]:
+    action = "--action"
+    from odmo_cli.generate import load_odmo
+
+    first = load_odmo(model_path).actions[0]
+    cmd = _cli(["sample", "--model", str(model_path), action, first, "--n", "20", "--out", str(folder / "e2e.npz")])
+    walls = _timed(lambda: subprocess.run(cmd, check=True, capture_output=True), runs)
+    rss_cmd = [sys.executable, "-c",
+               "import resource, subprocess, sys; subprocess.run(sys.argv[1:], check=True, capture_output=True);"
+               "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)",
+               *_cli(["sample", "--model", str(model_path), action, first, "--n", "10000",
+                      "--out", str(folder / "big.npz")])]
+    rss = [int(subprocess.run(rss_cmd, check=True, capture_output=True, text=True).stdout.split()[-1]) / 1024
+           for _ in range(max(1, runs // 2))]
+    return [Figure("`odmo sample --n 20` end to end (fresh process)", "s", walls, note),
+            Figure("peak RSS, `odmo sample --n 10000`", "MiB", rss, note)]
+
+
+def bench_training(dataset: str, data, runs: int) -> list[Figure]:
+    from odmo_cli.data.locate import resolve
+    from odmo_cli.data.readers import read_dataset
+    from odmo_cli.train import TrainConfig, Trainer, model_config_for
+
+    manifest, root = resolve(dataset, data)
+    clips = read_dataset(root, manifest)
+    tc = TrainConfig(epochs=runs + 1, batch_size=256, val_every=0, checkpoint_every=0, tf_start=0.65, tf_end=0.65)
+    with tempfile.TemporaryDirectory() as tmp:
+        trainer = Trainer(clips, model_config_for(clips), tc, Path(tmp) / "bench.pt")
+        logs = [trainer.train_epoch() for _ in range(runs + 1)][1:]
+    note = f"{len(trainer.train_idx)} pairs per epoch, batch 256 pairs, teacher forcing 0.65 (mid-schedule)"
+    return [Figure(f"training s/epoch, {dataset} (T = {manifest.clip_length})", "s", [g.seconds for g in logs], note),
+            Figure(f"training clips/s, {dataset}", "clips/s", [g.clips_per_s for g in logs], note)]
+
+
+def bench_evaluation(model: str | None, data, runs: int) -> list[Figure]:
+    from odmo_cli.evaluate import EvalConfig, run_evaluation
+
+    times = _timed(lambda: run_evaluation([model], None, data, None, EvalConfig()), runs, warmup=0)
+    return [Figure("evaluation protocol (10 repeats, paper's samples per action)", "s", times)]
+
+
+def run_bench(model: str | None = None, data=None, runs: int = 5, only: tuple[str, ...] = (),
+              progress: Callable[[str], None] | None = None) -> BenchReport:
+    from odmo_cli.errors import UserError
+    from odmo_cli.generate import shipped_path
+
+    report = BenchReport(machine())
+    want = lambda part: not only or part in only  # noqa: E731
+    say = progress or (lambda _: None)
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        path, note = None, ""
+        if model:
+            path = Path(model) if Path(model).is_file() else shipped_path(model)
+        elif shipped_path("humanact12"):
+            path = shipped_path("humanact12")
+        if path is None:
+            path, note = random_checkpoint("humanact12", folder), "untrained network, HumanAct12 shapes"
+        if want("sampling"):
+            say("sampling")
+            report.figures += bench_sampling(path, runs, note)
+        if want("end-to-end"):
+            say("end to end")
+            report.figures += bench_end_to_end(path, runs, note, folder)
+        for dataset in ("humanact12", "cmu_mocap"):
+            if want("training"):
+                say(f"training {dataset}")
+                try:
+                    report.figures += bench_training(dataset, data, min(runs, 3))
+                except UserError as exc:
+                    report.skipped.append(f"training {dataset}: {exc}")
+        if want("evaluation"):
+            say("evaluation")
+            try:
+                report.figures += bench_evaluation(model, data, max(1, min(runs, 3)))
+            except UserError as exc:
+                report.skipped.append(f"evaluation: {exc}")
+    return report

@@ -1,0 +1,258 @@
+"""The evaluation protocol (ODMO §4.2, supplement §2.5; Action2Motion §4.2.1).
+
+For each model: `repeats` sets of N generated motions per action; for each set, recognition
+accuracy, FID against a real set of the same size, Diversity, Multimodality, n-APD and bone-length
+consistency; reported as mean and 95% confidence half-width over the sets. Real motions get the
+same treatment against an independent real set (the "Real motions" row). Real features are
+computed once per evaluation and shared by every model compared.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from odmo_cli import metrics
+from odmo_cli.data.dataset import crop_pad_shift, random_start
+from odmo_cli.data.readers import ClipSet
+from odmo_cli.errors import UserError
+
+DEFAULT_PER_ACTION = {"cmu_mocap": 400, "humanact12": 250, "uestc": 200}
+METRICS = ("accuracy", "fid", "diversity", "multimodality", "inception", "n_apd", "bone_std")
+
+
+@dataclass
+class EvalConfig:
+    repeats: int = 10
+    per_action: int = 0  # 0: the paper's number for the dataset (250 HumanAct12, 400 CMU, 200 UESTC)
+    sampling: str = "mode-preserving"
+    seed: int = 0
+
+    def n_for(self, dataset: str) -> int:
+        return self.per_action or DEFAULT_PER_ACTION.get(dataset, 200)
+
+    def __post_init__(self):
+        if self.repeats <= 0 or self.per_action < 0:
+            raise UserError(f"--repeats must be positive and --per-action non-negative, got {self.repeats}, {self.per_action}")
+
+
+@dataclass
+class RealSets:
+    """Real crops: features, labels and per-set statistics for every repeat (+1 reference set)."""
+
+    features: list[np.ndarray]  # repeats + 1 sets of (C*N, 30)
+    labels: np.ndarray  # (C*N,)
+    logits: list[np.ndarray]
+    apd: np.ndarray  # (C,) per-action APD of the first real set
+    bone_std: list[float]
+
+
+def shipped_classifier(dataset: str) -> Path | None:
+    name = {"humanact12": "classifier_humanact12.pt", "cmu_mocap": "classifier_cmu.pt"}.get(dataset)
+    if name is None:
+        return None
+    path = Path(str(resources.files("odmo_cli") / "assets" / "models" / name))
+    return path if path.is_file() else None
+
+
+def real_crops(clips: ClipSet, per_action: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """per_action random crops of random clips of every action: (C*N, T, J, 3), (C*N,)."""
+    T = clips.manifest.clip_length
+    motions, labels = [], []
+    for c in range(len(clips.manifest.actions)):
+        idx = rng.choice(np.flatnonzero(clips.labels == c), size=per_action, replace=True)
+        for i in idx:
+            m = clips.motions[i]
+            motions.append(crop_pad_shift(m, T, random_start(len(m), T, rng)))
+        labels += [c] * per_action
+    return np.stack(motions), np.asarray(labels)
+
+
+def _apd_per_action(motions: np.ndarray, labels: np.ndarray, n_classes: int, cap: int = 250) -> np.ndarray:
+    return np.array([metrics.apd(motions[labels == c][:cap]) for c in range(n_classes)])
+
+
+def real_sets(clips: ClipSet, classifier, cfg: EvalConfig) -> RealSets:
+    rng = np.random.default_rng(cfg.seed + 10_000)
+    n = cfg.n_for(clips.manifest.name)
+    parents = clips.manifest.skeleton.parents
+    feats, logits, bone, apd, labels = [], [], [], None, None
+    for r in range(cfg.repeats + 1):
+        motions, labels = real_crops(clips, n, rng)
+        lo, fe = classifier.predict(motions)
+        feats.append(fe)
+        logits.append(lo)
+        bone.append(metrics.bone_length_consistency(motions, parents))
+        if r == 0:
+            apd = _apd_per_action(motions, labels, len(clips.manifest.actions))
+    return RealSets(feats, labels, logits, apd, bone)
+
+
+def set_metrics(logits: np.ndarray, feats: np.ndarray, labels: np.ndarray, real_feats: np.ndarray,
+                motions: np.ndarray | None, parents, real_apd: np.ndarray, rng: np.random.Generator,
+                bone_std: float | None = None) -> dict[str, float]:
+    out = {
+        "accuracy": 100 * metrics.accuracy(logits, labels),
+        "fid": metrics.fid_from_features(real_feats, feats),
+        "diversity": metrics.diversity(feats, 200, rng=rng),
+        "multimodality": metrics.multimodality(feats, labels, 20, rng=rng),
+        "inception": metrics.inception_score(_softmax(logits)),
+    }
+    if motions is not None:
+        gen_apd = _apd_per_action(motions, labels, len(real_apd))
+        out["n_apd"] = float(np.mean(gen_apd / real_apd))
+        out["bone_std"] = metrics.bone_length_consistency(motions, parents)
+    elif bone_std is not None:
+        out["n_apd"] = 1.0
+        out["bone_std"] = bone_std
+    return out
+
+
+def _softmax(logits: np.ndarray) -> np.ndarray:
+    e = np.exp(logits - logits.max(1, keepdims=True))
+    return e / e.sum(1, keepdims=True)
+
+
+def summarize(per_repeat: list[dict[str, float]]) -> dict[str, list[float]]:
+    """metric -> [mean, 95% CI half-width] over repeats."""
+    keys = per_repeat[0].keys()
+    return {k: list(metrics.mean_ci95([r[k] for r in per_repeat])) for k in keys}
+
+
+def evaluate_real(real: RealSets, cfg: EvalConfig, parents) -> dict:
+    rng = np.random.default_rng(cfg.seed + 20_000)
+    rows = [set_metrics(real.logits[r + 1], real.features[r + 1], real.labels, real.features[0], None,
+                        parents, real.apd, rng, real.bone_std[r + 1]) for r in range(cfg.repeats)]
+    return {"name": "Real motions", "metrics": summarize(rows), "per_repeat": rows}
+
+
+def evaluate_odmo(loaded, classifier, real: RealSets, cfg: EvalConfig, progress=None) -> dict:
+    """The protocol for one ODMO checkpoint."""
+    from odmo_cli.generate import sample
+
+    rng = np.random.default_rng(cfg.seed + 30_000)
+    n = cfg.n_for(loaded.dataset["name"])
+    parents = _parents(loaded.dataset["skeleton"])
+    rows, seeds, start = [], [], time.perf_counter()
+    for r in range(cfg.repeats):
+        seed = cfg.seed + r
+        batch = sample(loaded, ["all"], n, seed=seed, sampling=cfg.sampling)
+        labels = np.array([loaded.actions.index(a) for a in batch.actions])
+        logits, feats = classifier.predict(batch.motions)
+        rows.append(set_metrics(logits, feats, labels, real.features[r + 1], batch.motions, parents,
+                                real.apd, rng))
+        seeds.append(seed)
+        if progress:
+            progress(r + 1)
+    return {"name": Path(loaded.source).name + ("" if cfg.sampling == "mode-preserving" else f" ({cfg.sampling})"),
+            "model": loaded.source, "metrics": summarize(rows), "per_repeat": rows, "seeds": seeds,
+            "per_action": n, "seconds": time.perf_counter() - start}
+
+
+def evaluate_samples(path: Path, classifier, real: RealSets, actions: list[str], cfg: EvalConfig) -> dict:
+    """Motions produced elsewhere (a samples .npz) against the same real sets: one set, no CI."""
+    try:
+        data = np.load(path, allow_pickle=False)
+        motions, names = data["motions"].astype(np.float32), [str(a) for a in data["actions"]]
+    except (OSError, KeyError, ValueError) as exc:
+        raise UserError(f"cannot read samples {path}: {type(exc).__name__} (need motions and actions arrays)") from None
+    unknown = sorted(set(names) - set(actions))
+    if unknown:
+        raise UserError(f"samples {path} have actions {', '.join(unknown)} not in the dataset ({', '.join(actions)})")
+    labels = np.array([actions.index(a) for a in names])
+    logits, feats = classifier.predict(motions)
+    parents = None
+    row = set_metrics(logits, feats, labels, real.features[1], None, parents, real.apd,
+                      np.random.default_rng(cfg.seed))
+    return {"name": path.name, "metrics": {k: [v, 0.0] for k, v in row.items()}, "per_repeat": [row]}
+
+
+def _parents(skeleton: str):
+    from odmo_cli.skeletons import get_skeleton
+
+    return get_skeleton(skeleton).parents
+
+
+@torch.inference_mode()
+def customization(loaded, classifier, cfg: EvalConfig, codes_per_action: int = 40, n_ends: int = 10) -> dict:
+    """ODMO §4.4: per action, codes_per_action codes x n_ends end points on the segment between
+    two real end points of the class; accuracy and dist_e over `repeats` draws."""
+    from odmo_cli.generate import decode
+    from odmo_cli.latent import sample_codes
+
+    rows = []
+    bank_labels, bank_ends = loaded.bank["labels"].numpy(), loaded.bank["end_points"].numpy()
+    for r in range(cfg.repeats):
+        rng = np.random.default_rng(cfg.seed + 40_000 + r)
+        codes, labels, ends = [], [], []
+        for a in range(len(loaded.actions)):
+            own = np.flatnonzero(bank_labels == a)
+            e0, e1 = bank_ends[rng.choice(own, 2, replace=len(own) < 2)]
+            z, _ = sample_codes(loaded.action_modes(a, cfg.sampling), codes_per_action, rng)
+            for w in np.linspace(0, 1, n_ends):
+                codes.append(z)
+                labels.append(np.full(codes_per_action, a))
+                ends.append(np.repeat(((1 - w) * e0 + w * e1)[None], codes_per_action, 0))
+        codes, labels, ends = np.concatenate(codes), np.concatenate(labels), np.concatenate(ends).astype(np.float32)
+        motions = decode(loaded, codes, labels, ends)
+        logits, _ = classifier.predict(motions)
+        rows.append({"accuracy": 100 * metrics.accuracy(logits, labels),
+                     "dist_e": metrics.dist_e(ends, motions[:, -1, 0])})
+    return {"name": Path(loaded.source).name, "metrics": summarize(rows), "per_repeat": rows}
+
+
+@dataclass
+class Report:
+    dataset: str
+    classifier: str
+    config: dict
+    rows: list[dict] = field(default_factory=list)
+    customization: list[dict] = field(default_factory=list)
+    seconds: float = 0.0
+
+
+def run_evaluation(models: list[str | None], dataset: str | None, data, classifier_path: str | None,
+                   cfg: EvalConfig, samples: list[Path] = (), with_customization: bool = False,
+                   progress=None) -> Report:
+    """Load everything once, compute real features once, evaluate every model (and samples file)."""
+    from odmo_cli.data.locate import resolve
+    from odmo_cli.data.readers import read_dataset
+    from odmo_cli.generate import SAMPLING, load_odmo
+    from odmo_cli.models.classifier import check_matches, load_classifier
+
+    if cfg.sampling not in SAMPLING:
+        raise UserError(f"unknown sampling {cfg.sampling!r}; valid: {', '.join(SAMPLING)}")
+    start = time.perf_counter()
+    loaded = [load_odmo(m) for m in (models or ([] if samples else [None]))]
+    name = dataset or (loaded[0].dataset["name"] if loaded else None)
+    if name is None:
+        raise UserError("give --dataset with --samples")
+    manifest, root = resolve(name, data)
+    for m in loaded:
+        if m.actions != list(manifest.action_names):
+            raise UserError(f"{m.source} was trained on {m.dataset['name']} actions; the dataset is {manifest.name}")
+    clf_path = classifier_path or shipped_classifier(manifest.name)
+    if clf_path is None:
+        raise UserError(f"no classifier for {manifest.name}: pass --classifier (e.g. one trained with "
+                        f"`odmo train --model classifier --dataset {manifest.name}`)")
+    classifier = load_classifier(clf_path)
+    check_matches(classifier, manifest)
+    torch.manual_seed(cfg.seed)
+    clips = read_dataset(root, manifest)
+    real = real_sets(clips, classifier, cfg)
+    report = Report(manifest.name, str(clf_path), {"repeats": cfg.repeats, "per_action": cfg.n_for(manifest.name),
+                                                  "sampling": cfg.sampling, "seed": cfg.seed})
+    report.rows.append(evaluate_real(real, cfg, manifest.skeleton.parents))
+    for m in loaded:
+        report.rows.append(evaluate_odmo(m, classifier, real, cfg, progress))
+        if with_customization:
+            report.customization.append(customization(m, classifier, cfg))
+    for path in samples:
+        report.rows.append(evaluate_samples(Path(path), classifier, real, list(manifest.action_names), cfg))
+    report.seconds = time.perf_counter() - start
+    return report

@@ -1,0 +1,109 @@
+"""The evaluation protocol end to end on a tiny trained model and classifier (issue: evaluation)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from odmo_cli.cli import app
+from odmo_cli.data.demo import demo_folder
+from odmo_cli.data.locate import resolve
+from odmo_cli.data.readers import read_dataset
+from odmo_cli.evaluate import EvalConfig, run_evaluation
+from odmo_cli.models.classifier import ClassifierTrainConfig, train_classifier
+
+
+@pytest.fixture(scope="module")
+def lines_classifier(lines_folder, tmp_path_factory):
+    manifest, root = resolve(lines_folder)
+    out = tmp_path_factory.mktemp("clf") / "clf.pt"
+    train_classifier(read_dataset(root, manifest), ClassifierTrainConfig(
+        epochs=15, batch_size=16, val_fraction=0.25, threads=1, seed=0), out)
+    return out
+
+
+def evaluate(lines_model, lines_folder, lines_classifier, **kw):
+    cfg = EvalConfig(repeats=kw.pop("repeats", 3), per_action=kw.pop("per_action", 20), seed=kw.pop("seed", 0))
+    return run_evaluation([str(lines_model)], str(lines_folder), None, str(lines_classifier), cfg, **kw)
+
+
+def test_protocol_reports_every_metric_with_ci(lines_model, lines_folder, lines_classifier):
+    report = evaluate(lines_model, lines_folder, lines_classifier, with_customization=True)
+    assert [r["name"] for r in report.rows] == ["Real motions", "lines.pt"]
+    real, model = report.rows
+    for row in report.rows:
+        assert set(row["metrics"]) == {"accuracy", "fid", "diversity", "multimodality", "inception", "n_apd", "bone_std"}
+        assert len(row["per_repeat"]) == 3
+        for mean, half in row["metrics"].values():
+            assert np.isfinite(mean) and half >= 0
+    assert model["seeds"] == [0, 1, 2] and model["per_action"] == 20
+    # the classifier separates the two real actions (they differ in body size)
+    assert real["metrics"]["accuracy"][0] > 90
+    assert real["metrics"]["n_apd"][0] == 1.0
+    # rigid synthetic bodies: real bone lengths never change
+    assert real["metrics"]["bone_std"][0] == pytest.approx(0.0, abs=1e-6)
+    assert 1.0 <= model["metrics"]["inception"][0] <= 2.0
+    cust = report.customization[0]["metrics"]
+    assert cust["dist_e"][0] < 0.05 and 0 <= cust["accuracy"][0] <= 100
+
+
+def test_same_seed_same_numbers(lines_model, lines_folder, lines_classifier):
+    a = evaluate(lines_model, lines_folder, lines_classifier, repeats=2)
+    b = evaluate(lines_model, lines_folder, lines_classifier, repeats=2)
+    c = evaluate(lines_model, lines_folder, lines_classifier, repeats=2, seed=5)
+    assert a.rows[1]["metrics"] == b.rows[1]["metrics"]
+    assert a.rows[1]["metrics"] != c.rows[1]["metrics"]
+
+
+def test_samples_file_is_scored_like_the_model(lines_model, lines_folder, lines_classifier, tmp_path):
+    out = tmp_path / "s.npz"
+    res = CliRunner().invoke(app, ["sample", "--model", str(lines_model), "--action", "all", "--n", "20",
+                                   "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    report = run_evaluation([], str(lines_folder), None, str(lines_classifier), EvalConfig(repeats=1, per_action=20),
+                            samples=[out])
+    row = report.rows[-1]
+    from odmo_cli.models.classifier import load_classifier
+    data = np.load(out)
+    logits, _ = load_classifier(lines_classifier).predict(data["motions"])
+    expected = 100 * np.mean(logits.argmax(1) == np.array([["glide", "crouch"].index(a) for a in data["actions"]]))
+    assert row["metrics"]["accuracy"][0] == pytest.approx(expected)
+
+
+def test_cli_eval_table_and_json(lines_model, lines_folder, lines_classifier, tmp_path):
+    out = tmp_path / "report.json"
+    res = CliRunner().invoke(app, ["eval", "--model", str(lines_model), "--dataset", str(lines_folder),
+                                   "--classifier", str(lines_classifier), "--repeats", "2", "--per-action", "10",
+                                   "--json", str(out)])
+    assert res.exit_code == 0, res.output
+    assert "Real" in res.stdout and "Acc" in res.stdout
+    report = json.loads(out.read_text())
+    assert report["config"] == {"repeats": 2, "per_action": 10, "sampling": "mode-preserving", "seed": 0}
+    assert [r["name"] for r in report["rows"]] == ["Real motions", "lines.pt"]
+
+
+@pytest.mark.parametrize("extra, message", [
+    ([], "no classifier for lines"),
+    (["--classifier", "missing.pt"], "checkpoint not found"),
+    (["--repeats", "0"], "--repeats must be positive"),
+    (["--sampling", "nope"], "unknown sampling 'nope'"),
+])
+def test_cli_eval_bad_input(lines_model, lines_folder, tmp_path, extra, message):
+    res = CliRunner().invoke(app, ["eval", "--model", str(lines_model), "--dataset", str(lines_folder),
+                                   "--json", str(tmp_path / "r.json"), *extra])
+    assert res.exit_code == 2, res.output
+    assert message in res.stderr and "Traceback" not in res.stderr
+    assert not (tmp_path / "r.json").exists()
+
+
+def test_classifier_for_another_skeleton_is_refused(lines_model, lines_folder, tmp_path):
+    manifest, root = resolve(demo_folder("humanact12"))
+    clf = tmp_path / "h12.pt"
+    train_classifier(read_dataset(root, manifest), ClassifierTrainConfig(epochs=1, threads=1, val_fraction=0.0), clf)
+    res = CliRunner().invoke(app, ["eval", "--model", str(lines_model), "--dataset", str(lines_folder),
+                                   "--classifier", str(clf)])
+    assert res.exit_code == 2
+    assert "classifier expects 72 inputs (24 joints), the dataset has 20 joints" in res.stderr

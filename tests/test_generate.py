@@ -1,0 +1,188 @@
+"""Mode discovery, sampling, interpolation and end-point customisation (issue: on-demand generation)."""
+
+from __future__ import annotations
+
+import hashlib
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from odmo_cli.cli import app
+from odmo_cli.generate import load_odmo, parse_point, sample
+from odmo_cli.latent import ActionModes, choose_k, discover_modes, knn_end_points, sample_codes
+
+# -- mode discovery --------------------------------------------------------------------------
+
+def blobs(k, per=40, seed=0):
+    """k tight blobs at the corners of a simplex (all centres 10 apart)."""
+    rng = np.random.default_rng(seed)
+    d = max(k, 4)
+    centres = np.eye(d)[:k] * 10 / np.sqrt(2)
+    return np.concatenate([c + rng.normal(0, 0.3, (per, d)) for c in centres]), np.repeat(np.arange(k), per)
+
+
+@pytest.mark.parametrize("k", [3, 5, 7])
+def test_silhouette_rule_finds_the_number_of_blobs(k):
+    codes, _ = blobs(k, seed=k)
+    modes = discover_modes(codes, seed=0)
+    assert len(modes.means) == k
+    assert sorted(modes.counts.tolist()) == [40] * k
+
+
+def test_choose_k_rule():
+    # S_3 > 0.95 S_4 holds first at 3
+    assert choose_k({3: 0.6, 4: 0.61, 5: 0.9}) == 3
+    # 3 -> 4 and 4 -> 5 improve by more than 5 %, 5 -> 6 does not
+    assert choose_k({3: 0.3, 4: 0.5, 5: 0.8, 6: 0.81}) == 5
+    assert choose_k({3: 0.1, 4: 0.2, 5: 0.3}) == 5
+
+
+def test_small_components_are_dropped_and_small_actions_fall_back():
+    codes, _ = blobs(3, per=40)
+    noise = np.random.default_rng(1).normal(30, 0.1, (4, 4))  # a far-away cluster of 4 codes
+    modes = discover_modes(np.concatenate([codes, noise]), seed=0)
+    assert all(c >= 10 for c in modes.counts) and modes.counts.sum() == 120
+    few = discover_modes(codes[:12], seed=0)
+    assert len(few.means) == 1 and "too few" in few.note
+
+
+def test_sampling_from_one_mode_stays_in_it():
+    codes, _ = blobs(3)
+    modes = discover_modes(codes, seed=0)
+    samples, ids = sample_codes(modes, 200, np.random.default_rng(0), mode=1)
+    assert (ids == 1).all()
+    nearest = np.linalg.norm(samples[:, None] - modes.means[None], axis=-1).argmin(1)
+    assert (nearest == 1).all()
+
+
+def test_mode_preserving_and_user_weights():
+    modes = ActionModes(np.eye(2) * 10, np.stack([np.eye(2)] * 2), np.array([30, 10]))
+    _, ids = sample_codes(modes, 4000, np.random.default_rng(0))
+    assert abs((ids == 0).mean() - 0.75) < 0.03
+    _, ids = sample_codes(modes, 4000, np.random.default_rng(0), weights=np.array([0.2, 0.8]))
+    assert abs((ids == 1).mean() - 0.8) < 0.03
+
+
+def test_knn_end_points():
+    bank = np.array([[0.0, 0.0], [10.0, 0.0]])
+    ends = np.array([[1.0, 0, 0], [2.0, 0, 0]])
+    assert knn_end_points(bank, ends, np.array([[9.0, 0.0], [1.0, 0.0]])).tolist() == [[2, 0, 0], [1, 0, 0]]
+    assert knn_end_points(bank, ends, np.array([[9.0, 0.0]]), k=2).tolist() == [[1.5, 0, 0]]
+
+
+def test_parse_point():
+    p, axes = parse_point("1,2", up_axis=1)
+    assert axes == (0, 2) and p[0] == 1 and np.isnan(p[1]) and p[2] == 2
+    p, axes = parse_point("1,2,3", up_axis=1)
+    assert axes == (0, 1, 2) and p.tolist() == [1, 2, 3]
+
+
+# -- sampling with a trained tiny model ------------------------------------------------------
+
+def test_end_points_are_reached(lines_model):
+    loaded = load_odmo(lines_model)
+    batch = sample(loaded, ["glide"], 10, seed=0, end="0.6,-0.4")
+    assert batch.dist_e() < 0.01, batch.dist_e()
+    far = sample(loaded, ["glide"], 10, seed=0, end="-0.6,0.4")
+    assert np.linalg.norm(far.reached[:, [0, 2]].mean(0) - [-0.6, 0.4]) < 0.1
+
+
+def test_end_segment_protocol(lines_model):
+    batch = sample(load_odmo(lines_model), ["crouch"], 3, seed=1, end_from="0,0", end_to="1,1", steps=5)
+    assert len(batch.motions) == 15
+    assert np.allclose(batch.end_points[::3, [0, 2]], np.linspace(0, 1, 5)[:, None].repeat(2, 1))
+
+
+def test_mode_samples_come_from_that_mode(lines_model):
+    loaded = load_odmo(lines_model)
+    k = len(loaded.action_modes(0).means)
+    for m in range(k):
+        batch = sample(loaded, ["glide"], 5, seed=0, mode=m)
+        assert (batch.modes == m).all()
+        modes = loaded.action_modes(0)
+        nearest = np.linalg.norm(batch.codes[:, None] - modes.means[None], axis=-1).argmin(1)
+        assert (nearest == m).mean() >= 0.8
+
+
+def sha(path):
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_same_seed_same_bytes(lines_model, tmp_path):
+    runner = CliRunner()
+    outs = []
+    for name, seed in (("a", "3"), ("b", "3"), ("c", "4")):
+        out = tmp_path / f"{name}.npz"
+        res = runner.invoke(app, ["sample", "--model", str(lines_model), "--action", "all", "--n", "4",
+                                  "--seed", seed, "--out", str(out)])
+        assert res.exit_code == 0, res.output
+        outs.append(out)
+    assert sha(outs[0]) == sha(outs[1]) != sha(outs[2])
+    data = np.load(outs[0])
+    assert data["motions"].shape == (8, 12, 20, 3) and data["motions"].dtype == np.float32
+    assert list(data["actions"]) == ["glide"] * 4 + ["crouch"] * 4
+    assert str(data["skeleton"]) == "cmu20" and data["parents"][0] == -1 and len(data["joint_names"]) == 20
+    assert data["codes"].shape == (8, 4) and data["end_points"].shape == (8, 3)
+    assert float(data["fps"]) == 10 and int(data["seed"]) == 3
+    # the first root of every motion sits near the origin
+    assert np.abs(data["motions"][:, 0, 0]).max() < 0.3
+
+
+def test_interpolation_walks_between_modes(lines_model, tmp_path):
+    out = tmp_path / "mix.npz"
+    res = CliRunner().invoke(app, ["interpolate", "--model", str(lines_model), "--action", "glide",
+                                   "--from-code", "0", "--to-code", "3", "--steps", "6", "--out", str(out), "--json"])
+    assert res.exit_code == 0, res.output
+    data = np.load(out)
+    loaded = load_odmo(lines_model)
+    bank = loaded.bank["codes"].numpy()
+    assert np.allclose(data["codes"][0], bank[0]) and np.allclose(data["codes"][-1], bank[3])
+    assert np.allclose(data["codes"][2], bank[0] + 0.4 * (bank[3] - bank[0]), atol=1e-6)
+    assert data["motions"].shape[0] == 6
+
+
+def test_modes_command_reports_and_plots(lines_model, tmp_path):
+    plot = tmp_path / "codes.png"
+    res = CliRunner().invoke(app, ["modes", str(lines_model), "--json", "--plot", str(plot), "--colour", "mode"])
+    assert res.exit_code == 0, res.output
+    import json
+    rows = json.loads(res.stdout)["actions"]
+    assert [r["action"] for r in rows] == ["glide", "crouch"]
+    assert all(r["true_modes"] == 2 and -1 <= r["ari"] <= 1 for r in rows)
+    assert plot.stat().st_size > 1000
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--action", "glide", "--mode", "9"], "--mode 9 is out of range"),
+    (["--action", "glide", "--mode-weights", "0,0"], "--mode-weights must be non-negative numbers with a positive sum"),
+    (["--action", "glide", "--mode-weights", "a,b"], "--mode-weights must be comma-separated numbers"),
+    (["--action", "glide", "--end", "1"], "--end must be two (ground plane) or three comma-separated numbers"),
+    (["--action", "glide", "--end", "1,x"], "--end must be two"),
+    (["--action", "glide", "--n", "0"], "--n must be a positive number of motions, got 0"),
+    (["--action", "jump"], "unknown action 'jump'; valid: glide, crouch, all"),
+    (["--action", "glide", "--sampling", "odd"], "unknown sampling 'odd'; valid: mode-preserving, conventional"),
+    (["--action", "glide", "--end-from", "0,0"], "--end-from and --end-to go together"),
+])
+def test_sample_bad_input(lines_model, tmp_path, args, message):
+    out = tmp_path / "s.npz"
+    res = CliRunner().invoke(app, ["sample", "--model", str(lines_model), "--out", str(out), *args])
+    assert res.exit_code == 2, res.output
+    assert message in res.stderr and res.stderr.count("\n") == 1 and "Traceback" not in res.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_sample_unwritable_out(lines_model, tmp_path):
+    out = tmp_path / "missing" / "s.npz"
+    res = CliRunner().invoke(app, ["sample", "--model", str(lines_model), "--action", "glide", "--out", str(out)])
+    assert res.exit_code == 2 and "does not exist" in res.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_sample_without_model_or_with_a_bad_one(tmp_path):
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    res = CliRunner().invoke(app, ["sample", "--model", str(bad), "--action", "jump", "--out", str(tmp_path / "x.npz")])
+    assert res.exit_code == 2 and "cannot load checkpoint" in res.stderr
+    assert not (tmp_path / "x.npz").exists()
