@@ -205,16 +205,16 @@ ABLATIONS = ("es", "traj", "cons", "end-point")
 @app.command("train")
 def train(
     dataset: Annotated[str, typer.Option("--dataset", help="Dataset name or folder.")] = "humanact12",
-    model: Annotated[str, typer.Option("--model", help="Model kind: odmo.")] = "odmo",
-    epochs: Annotated[int, typer.Option("--epochs")] = 300,
-    batch_size: Annotated[int, typer.Option("--batch-size", help="Pairs per step.")] = 256,
-    lr: Annotated[float, typer.Option("--lr")] = 1e-3,
+    model: Annotated[str, typer.Option("--model", help="Model kind: odmo, classifier.")] = "odmo",
+    epochs: Annotated[Optional[int], typer.Option("--epochs", help="Default: 300 (odmo), 150 (classifier).")] = None,
+    batch_size: Annotated[Optional[int], typer.Option("--batch-size", help="Pairs per step (odmo, default 256); clips (classifier, 64).")] = None,
+    lr: Annotated[Optional[float], typer.Option("--lr", help="Default 1e-3.")] = None,
     lr_final: Annotated[Optional[float], typer.Option("--lr-final", help="Cosine-decay target (default: constant lr).")] = None,
     tf_epochs: Annotated[int, typer.Option("--tf-epochs", help="Teacher forcing decays 1 -> 0.3 over these epochs (0: all).")] = 0,
     ablate: Annotated[Optional[list[str]], typer.Option("--ablate", help="Drop a part: es, traj, cons, end-point (repeatable).")] = None,
     checkpoint_every: Annotated[int, typer.Option("--checkpoint-every", help="Epochs between checkpoints.")] = 25,
     val_every: Annotated[int, typer.Option("--val-every", help="Epochs between validation losses.")] = 10,
-    out: Annotated[Path, typer.Option("--out", help="Checkpoint to write.")] = Path("odmo.pt"),
+    out: Annotated[Optional[Path], typer.Option("--out", help="Checkpoint to write (default <model>.pt).")] = None,
     resume: Annotated[Optional[Path], typer.Option("--resume", help="Checkpoint to continue from.")] = None,
     threads: Annotated[int, typer.Option("--threads", help="CPU threads (0: torch default).")] = 0,
     device: Annotated[str, typer.Option("--device", help="cpu (cuda is not supported yet).")] = "cpu",
@@ -226,8 +226,14 @@ def train(
     from odmo_cli.data.readers import read_dataset
     from odmo_cli.train import TrainConfig, train_odmo
 
+    out = out or Path(f"{model}.pt")
+    if model == "classifier":
+        return _train_classifier(dataset, data, epochs, batch_size, lr, out, seed, threads, as_json)
+    epochs = 300 if epochs is None else epochs
+    batch_size = 256 if batch_size is None else batch_size
+    lr = 1e-3 if lr is None else lr
     if model != "odmo":
-        raise UserError(f"unknown model {model!r}; valid: odmo")
+        raise UserError(f"unknown model {model!r}; valid: odmo, classifier")
     if device != "cpu":
         raise UserError(f"device {device!r} is not supported; valid: cpu")
     bad = [a for a in ablate or [] if a not in ABLATIONS]
@@ -275,6 +281,32 @@ def train(
     console.print(f"latent space: centroid distance {r['centroid_distance']:.2f} (min {r['min_centroid_distance']:.2f}, "
                   f"alpha {r['alpha']:g}), spread {r['spread']:.2f}, nearest-centroid accuracy "
                   f"{100 * r['nearest_centroid_acc']:.1f}%")
+
+
+def _train_classifier(dataset, data, epochs, batch_size, lr, out, seed, threads, as_json) -> None:
+    """The action classifier for evaluation, trained on real motion with a held-out split."""
+    from odmo_cli.data.readers import read_dataset
+    from odmo_cli.models.classifier import ClassifierTrainConfig, train_classifier
+
+    given = {"epochs": epochs, "batch_size": batch_size, "lr": lr}
+    tc = ClassifierTrainConfig.from_dict({"seed": seed, "threads": threads,
+                                          **{k: v for k, v in given.items() if v is not None}})
+    epochs = tc.epochs
+    manifest, root = _resolve(dataset, data)
+    clips = read_dataset(root, manifest)
+
+    def show(log: dict) -> None:
+        if log["epoch"] % 10 == 0 or log["epoch"] == epochs:
+            err_console.print(f"epoch {log['epoch']}/{epochs} loss {log['loss']:.3f} train acc "
+                              f"{100 * log['train_accuracy']:.1f}% val acc {100 * log['val_accuracy']:.1f}%",
+                              highlight=False)
+
+    report = train_classifier(clips, tc, out, None if as_json else show)
+    if as_json:
+        return _print_json({"out": str(out), "report": report})
+    console.print(f"wrote {out}: validation accuracy {100 * report['val_accuracy']:.2f}% on "
+                  f"{report['val_clips']} held-out clips (train {100 * report['train_accuracy']:.2f}%, "
+                  f"{report['seconds']:.0f} s)")
 
 
 @app.command("info")

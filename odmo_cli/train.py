@@ -270,7 +270,9 @@ def train_odmo(clips: ClipSet, tc: TrainConfig, out: Path, overrides: dict | Non
         ckpt = load_checkpoint(resume)
         cfg = ODMOConfig.from_dict(ckpt["config"])
         saved = TrainConfig.from_dict(ckpt["train_config"])
-        tc = TrainConfig.from_dict({**asdict(saved), "epochs": max(tc.epochs, saved.epochs)})
+        # a resumed run keeps its schedule; only the length and the thread count may change
+        tc = TrainConfig.from_dict({**asdict(saved), "epochs": max(tc.epochs, saved.epochs),
+                                    "threads": tc.threads or saved.threads})
         trainer = Trainer(clips, cfg, tc, out)
         trainer.load_state(ckpt)
     else:

@@ -286,7 +286,7 @@ def test_cli_train_and_info(tmp_path):
 @pytest.mark.parametrize("args, message", [
     (["--ablate", "nope"], "unknown ablation 'nope'; valid: es, traj, cons, end-point"),
     (["--epochs", "0"], "epochs and batch size must be positive"),
-    (["--model", "gan"], "unknown model 'gan'; valid: odmo"),
+    (["--model", "gan"], "unknown model 'gan'; valid: odmo, classifier"),
     (["--resume", "missing.pt"], "checkpoint not found"),
 ])
 def test_cli_train_bad_input(tmp_path, args, message):

@@ -305,6 +305,7 @@ class ClassifierTrainConfig:
     rotate: float = 0.0  # augmentation: random rotation about the up axis, up to this many degrees
     mirror: bool = False  # augmentation: half the crops mirrored (left/right joints swapped)
     speed: float = 1.0  # augmentation: playback speed drawn log-uniformly in [1/speed, speed]
+    noise: float = 0.0  # augmentation: std of Gaussian noise added to every coordinate (dataset units)
     val_fraction: float = 0.2
     # "shuffle": every training clip once per epoch; "length": every clip ceil(frames / T) times
     # (long clips give more crops); "balanced": as many draws as clips, classes equally likely
@@ -325,6 +326,8 @@ class ClassifierTrainConfig:
             raise UserError(f"dropout must be in [0, 1), got {self.dropout}")
         if not 1.0 <= self.speed <= 4.0:
             raise UserError(f"speed must be in [1, 4] (1: no change), got {self.speed}")
+        if self.noise < 0:
+            raise UserError(f"noise must not be negative, got {self.noise}")
         if not 0 <= self.rotate <= 180 or self.weight_decay < 0:
             raise UserError(f"rotate must be in [0, 180] degrees and weight decay >= 0, got {self.rotate}, {self.weight_decay}")
         if not 0 <= self.val_fraction < 1:
@@ -480,6 +483,8 @@ def train_classifier(clips: ClipSet, tc: ClassifierTrainConfig, out: str | Path,
             x = rotate_up(x, skeleton.up_index, tc.rotate, rng)
             if tc.mirror:
                 x = mirror_half(x, perm, skeleton.ground_axes[0], rng)
+            if tc.noise > 0:
+                x = x + rng.normal(0.0, tc.noise, size=x.shape).astype(np.float32)
             x = torch.from_numpy(x)
             y = torch.from_numpy(labels[order])
             loss_sum, correct = 0.0, 0
