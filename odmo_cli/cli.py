@@ -131,16 +131,21 @@ def data_fetch(dataset: Annotated[str, typer.Argument(help="Dataset name or a ma
     from odmo_cli.data.manifest import load_manifest
 
     manifest = load_manifest(dataset)
-    with Progress(TextColumn("{task.description}"), BarColumn(), DownloadColumn(),
-                  console=err_console, transient=True) as progress:
-        tasks: dict[str, int] = {}
+    bar = Progress(TextColumn("{task.description}"), BarColumn(), DownloadColumn(), console=err_console,
+                   transient=True)
+    tasks: dict[str, int] = {}
 
-        def report(name: str, done: int, total: int | None) -> None:
-            if name not in tasks:
-                tasks[name] = progress.add_task(name, total=total)
-            progress.update(tasks[name], completed=done, total=total)
+    def report(name: str, done: int, total: int | None) -> None:
+        bar.start()  # only once bytes arrive: an early error prints just its one line
+        if name not in tasks:
+            tasks[name] = bar.add_task(name, total=total)
+        bar.update(tasks[name], completed=done, total=total)
 
+    try:
         result = fetch_dataset(manifest, to, progress=report)
+    finally:
+        if bar.live.is_started:
+            bar.stop()
     summary = {"dataset": manifest.name, "dest": str(result.dest), "downloaded": result.downloaded,
                "present": result.present, "extracted": len(result.extracted)}
     if as_json:

@@ -335,3 +335,33 @@ def test_tar_with_symlink_is_rejected_and_safe_tar_extracted(server, tmp_path):
     m = serve(server, tmp_path, "/good.tgz", good, rel="good.tgz", archive="tar")
     fetch(m, tmp_path / "good")
     assert (tmp_path / "good" / "sub" / "x.txt").read_bytes() == b"xyz"
+
+
+# -- the command line ----------------------------------------------------------------------------
+
+def test_cli_fetch_downloads_and_reports(server, tmp_path):
+    from typer.testing import CliRunner
+
+    from odmo_cli.cli import app
+
+    m = serve(server, tmp_path, "/a.bin", PAYLOAD, rel="a.bin")
+    dest = tmp_path / "data"
+    res = CliRunner().invoke(app, ["data", "fetch", str(m.path), "--to", str(dest), "--json"])
+    assert res.exit_code == 0, res.output
+    assert '"downloaded": [\n    "a.bin"\n  ]' in res.stdout
+    assert (dest / "a.bin").read_bytes() == PAYLOAD
+    res = CliRunner().invoke(app, ["data", "fetch", str(m.path), "--to", str(dest)])
+    assert res.exit_code == 0 and "1 already present and verified" in res.stdout
+
+
+def test_cli_fetch_corrupted_is_exit_2_and_nothing_kept(server, tmp_path):
+    from typer.testing import CliRunner
+
+    from odmo_cli.cli import app
+
+    m = serve(server, tmp_path, "/a.bin", PAYLOAD, rel="a.bin", digest=sha(b"other bytes"))
+    dest = tmp_path / "data"
+    res = CliRunner().invoke(app, ["data", "fetch", str(m.path), "--to", str(dest)])
+    assert res.exit_code == 2 and "checksum mismatch for a.bin" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1  # the bar that ran before leaves no text behind
+    assert not (dest / "a.bin").exists() and leftovers(dest) == []
