@@ -244,12 +244,45 @@ def test_training_is_deterministic(demo_clips, tiny_run, tmp_path):
     assert not all(torch.equal(a[k], c[k]) for k in a)
 
 
-def test_training_with_validation_split_and_balanced_sampling(demo_clips, tmp_path):
-    report = train_classifier(demo_clips, tiny_tc(epochs=2, val_fraction=0.34, sampling="balanced",
-                                                  lr_final=1e-4, rotate=10.0), tmp_path / "v.pt")
+@pytest.mark.parametrize("options", [
+    dict(sampling="balanced", rotate=10.0),
+    dict(sampling="length", mirror=True, speed=2.0, noise=0.01, dropout=0.2, lr_final=1e-4),
+])
+def test_training_with_validation_split_and_options(demo_clips, tmp_path, options):
+    logs = []
+    report = train_classifier(demo_clips, tiny_tc(epochs=2, val_fraction=0.34, **options), tmp_path / "v.pt",
+                              progress=logs.append)
     assert report["val_clips"] == 12 and report["train_clips"] == 24
-    assert 0.0 <= report["val_accuracy"] <= 1.0
+    assert 0.0 <= report["val_accuracy"] <= 1.0 and 0.0 <= report["val_accuracy_random_crop"] <= 1.0
     assert set(report["val_per_class"]) == set(demo_clips.manifest.action_names)
+    assert all(np.isfinite(log["loss"]) for log in logs)
+
+
+def test_learning_rate_schedule():
+    assert ClassifierTrainConfig(epochs=5, lr=1e-3).learning_rate(4) == 1e-3
+    tc = ClassifierTrainConfig(epochs=5, lr=1e-3, lr_final=1e-5)
+    assert tc.learning_rate(0) == pytest.approx(1e-3) and tc.learning_rate(4) == pytest.approx(1e-5)
+
+
+def test_mirror_swaps_sides_and_negates_one_axis():
+    names = load_manifest("humanact12").skeleton.joint_names
+    perm = clf.mirror_map(names)
+    assert names[perm[names.index("left_wrist")]] == "right_wrist" and perm[0] == 0
+    assert [perm[j] for j in perm] == list(range(len(names)))  # an involution
+    motions = np.random.default_rng(0).normal(size=(40, 3, 24, 3)).astype(np.float32)
+    out = clf.mirror_half(motions, perm, 0, np.random.default_rng(1))
+    flipped = ~np.all(out == motions, axis=(1, 2, 3))
+    assert 5 < flipped.sum() < 35
+    expected = motions[flipped][:, :, perm] * np.array([-1, 1, 1], np.float32)
+    np.testing.assert_array_equal(out[flipped], expected)
+
+
+def test_resample_changes_playback_speed():
+    motion = np.arange(10, dtype=np.float32)[:, None, None] * np.ones((1, 2, 3), np.float32)
+    np.testing.assert_array_equal(clf._resample(motion, 1.0), motion)
+    np.testing.assert_array_equal(clf._resample(motion, 2.0)[:, 0, 0], [0, 2, 4, 6, 8])
+    np.testing.assert_allclose(clf._resample(motion, 0.5)[:4, 0, 0], [0, 0.5, 1, 1.5])
+    assert len(clf._resample(motion, 0.5)) == 19
 
 
 @pytest.mark.parametrize("kw, message", [
@@ -259,6 +292,8 @@ def test_training_with_validation_split_and_balanced_sampling(demo_clips, tmp_pa
     ({"val_fraction": 1.0}, r"validation fraction must be in \[0, 1\)"),
     ({"sampling": "weighted"}, "unknown sampling 'weighted'; valid: shuffle, balanced"),
     ({"dropout": 1.5}, "dropout must be in"),
+    ({"speed": 0.5}, r"speed must be in \[1, 4\]"),
+    ({"noise": -1.0}, "noise must not be negative"),
 ])
 def test_bad_training_configs_are_user_errors(kw, message):
     with pytest.raises(UserError, match=message):
