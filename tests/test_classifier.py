@@ -198,7 +198,8 @@ def test_presets_by_dataset():
 # -- training ------------------------------------------------------------------------------------
 
 def tiny_tc(**kw) -> ClassifierTrainConfig:
-    base = dict(epochs=25, batch_size=12, lr=3e-3, val_fraction=0.0, hidden=32, threads=1, seed=3)
+    base = dict(epochs=25, batch_size=12, lr=3e-3, val_fraction=0.0, hidden=32, threads=1, seed=3,
+                sampling="shuffle", mirror=False, speed=1.0)
     base.update(kw)
     return ClassifierTrainConfig(**base)
 
@@ -259,7 +260,7 @@ def test_training_with_validation_split_and_options(demo_clips, tmp_path, option
 
 
 def test_learning_rate_schedule():
-    assert ClassifierTrainConfig(epochs=5, lr=1e-3).learning_rate(4) == 1e-3
+    assert ClassifierTrainConfig(epochs=5, lr=1e-3, lr_final=0.0).learning_rate(4) == 1e-3  # constant
     tc = ClassifierTrainConfig(epochs=5, lr=1e-3, lr_final=1e-5)
     assert tc.learning_rate(0) == pytest.approx(1e-3) and tc.learning_rate(4) == pytest.approx(1e-5)
 

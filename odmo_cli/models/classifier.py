@@ -14,6 +14,15 @@ The initial GRU hidden state is **zeros**. Action2Motion draws it from N(0, 1) a
 distribution's mean and makes every feature a deterministic function of the motion. The released
 weights load unchanged (same parameter names and shapes).
 
+Training notes (threads=1, seed 0, 20% per-class held-out split, accuracy on the first T frames
+of held-out clips, one run each, so +-1-2 points is noise): plain shuffling of one random crop per
+clip reached 85-87% on HumanAct12 and 89% on CMU MoCap-7; mirroring, random playback speed and
+length-proportional sampling lifted that to 90.3% (HumanAct12, 200 epochs, speed 2.0) and 90.8%
+(CMU-7, 100 epochs, speed 1.3). Dropout, weight decay, input noise, rotation about the up axis and
+larger batches or learning rates did not help. Most HumanAct12 errors come from subject P12
+(about 56% held-out accuracy against 86-100% for the others; its walks and runs are markedly
+slower per frame). Hand-made features with an RBF SVM reach about 91% on the same split.
+
 Files `load_classifier` reads: an odmo classifier checkpoint (kind "classifier", written by
 `train_classifier`), or an Action2Motion release file (a torch file holding a dict whose `model`
 entry is the state dict; see `A2M_RELEASES`), or a bare state dict with the same names. All are
@@ -296,20 +305,21 @@ SAMPLINGS = ("shuffle", "balanced", "length")
 
 @dataclass
 class ClassifierTrainConfig:
-    epochs: int = 150
+    # Defaults: the settings of the measured HumanAct12 run (see the module's training notes).
+    epochs: int = 200
     batch_size: int = 64
     lr: float = 1e-3
-    lr_final: float = 0.0  # cosine decay from lr to lr_final over the epochs; 0 keeps lr constant
+    lr_final: float = 1e-5  # cosine decay from lr to lr_final over the epochs; 0 keeps lr constant
     weight_decay: float = 0.0
     dropout: float = 0.0  # between GRU layers, training only
     rotate: float = 0.0  # augmentation: random rotation about the up axis, up to this many degrees
-    mirror: bool = False  # augmentation: half the crops mirrored (left/right joints swapped)
-    speed: float = 1.0  # augmentation: playback speed drawn log-uniformly in [1/speed, speed]
+    mirror: bool = True  # augmentation: half the crops mirrored (left/right joints swapped)
+    speed: float = 2.0  # augmentation: playback speed drawn log-uniformly in [1/speed, speed]; 1: off
     noise: float = 0.0  # augmentation: std of Gaussian noise added to every coordinate (dataset units)
     val_fraction: float = 0.2
     # "shuffle": every training clip once per epoch; "length": every clip ceil(frames / T) times
     # (long clips give more crops); "balanced": as many draws as clips, classes equally likely
-    sampling: str = "shuffle"
+    sampling: str = "length"
     crop: str = "random"  # "random": a random T-frame crop of every clip each epoch; "start": the first T frames
     grad_clip: float = 1.0  # max gradient norm; 0 disables
     seed: int = 0
@@ -328,8 +338,10 @@ class ClassifierTrainConfig:
             raise UserError(f"speed must be in [1, 4] (1: no change), got {self.speed}")
         if self.noise < 0:
             raise UserError(f"noise must not be negative, got {self.noise}")
-        if not 0 <= self.rotate <= 180 or self.weight_decay < 0:
-            raise UserError(f"rotate must be in [0, 180] degrees and weight decay >= 0, got {self.rotate}, {self.weight_decay}")
+        if not 0 <= self.rotate <= 180:
+            raise UserError(f"rotate must be in [0, 180] degrees, got {self.rotate}")
+        if self.weight_decay < 0:
+            raise UserError(f"weight decay must not be negative, got {self.weight_decay}")
         if not 0 <= self.val_fraction < 1:
             raise UserError(f"validation fraction must be in [0, 1), got {self.val_fraction}")
         if self.sampling not in SAMPLINGS:
