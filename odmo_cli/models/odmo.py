@@ -96,7 +96,8 @@ class MotionGenerator(nn.Module):
     """Seq2seq: a trajectory encoder whose final state starts an autoregressive pose decoder.
 
     Each decoder step sees [previous pose, outer(c, z), t/T]. The parts of its input embedding
-    that do not depend on the previous pose are computed once for all steps.
+    that do not depend on the previous pose are computed once for all steps, and so are the
+    teacher-forced inputs. The decoder is two LSTMCells: a 2-layer LSTM stepped one frame at a time.
     """
 
     def __init__(self, cfg: ODMOConfig):
@@ -111,9 +112,6 @@ class MotionGenerator(nn.Module):
         self.cell0 = nn.LSTMCell(h, h)
         self.cell1 = nn.LSTMCell(h, h)
         self.out = nn.Linear(h, p)
-
-    def load_from_lstm(self):  # pragma: no cover - documentation hook
-        """The decoder is two LSTMCells, numerically a 2-layer nn.LSTM stepped one frame at a time."""
 
     def forward(self, trajectory: torch.Tensor, cond: torch.Tensor, target: torch.Tensor | None = None,
                 teacher: torch.Tensor | None = None) -> torch.Tensor:
