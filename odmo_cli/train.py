@@ -64,8 +64,13 @@ class TrainConfig:
         return self.tf_start + (self.tf_end - self.tf_start) * frac
 
     def learning_rate(self, epoch: int) -> float:
-        frac = epoch / max(self.epochs - 1, 1)
-        return self.lr_final + 0.5 * (self.lr - self.lr_final) * (1 + math.cos(math.pi * frac))
+        return cosine_rate(self.lr, self.lr_final, epoch, self.epochs)
+
+
+def cosine_rate(lr: float, lr_final: float, epoch: int, epochs: int) -> float:
+    """Cosine decay from lr (epoch 0) to lr_final (the last of `epochs`)."""
+    frac = epoch / max(epochs - 1, 1)
+    return lr_final + 0.5 * (lr - lr_final) * (1 + math.cos(math.pi * frac))
 
 
 @dataclass

@@ -358,10 +358,9 @@ class ClassifierTrainConfig:
 
     def learning_rate(self, epoch: int) -> float:
         """The rate of 0-based `epoch`: cosine from lr to lr_final, or constant lr."""
-        if not self.lr_final:
-            return self.lr
-        frac = epoch / max(self.epochs - 1, 1)
-        return self.lr_final + 0.5 * (self.lr - self.lr_final) * (1 + math.cos(math.pi * frac))
+        from odmo_cli.train import cosine_rate
+
+        return cosine_rate(self.lr, self.lr_final or self.lr, epoch, self.epochs)
 
 
 def crop_batch(clips: ClipSet, idx: np.ndarray, length: int, rng: np.random.Generator | None = None,
