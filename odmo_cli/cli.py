@@ -338,11 +338,11 @@ def _summary(batch, out: Path, as_json: bool, extra: dict | None = None) -> None
     for a, m in zip(batch.actions, batch.modes):
         per_action.setdefault(str(a), {}).setdefault(int(m), 0)
         per_action[str(a)][int(m)] += 1
-    payload = {"out": str(out), "motions": int(len(batch.motions)), "model": batch.model, "seed": batch.seed,
-               "frames": int(batch.motions.shape[1]), "actions": per_action, "dist_e": batch.dist_e(), **(extra or {})}
+    payload = {"out": str(out), "motions": len(batch), "model": batch.model, "seed": batch.seed,
+               "frames": int(batch.loaded.model.cfg.length), "actions": per_action, "dist_e": batch.dist_e(), **(extra or {})}
     if as_json:
         return _print_json(payload)
-    table = Table(title=f"{len(batch.motions)} motions -> {out}")
+    table = Table(title=f"{len(batch)} motions -> {out}")
     table.add_column("action")
     table.add_column("motions", justify="right")
     table.add_column("modes used (mode: count)")
@@ -379,14 +379,14 @@ def sample_cmd(
         raise UserError("give either --mode or --mode-weights, not both")
     weights = _floats(mode_weights, "--mode-weights") if mode_weights is not None else None
     loaded = load_odmo(model)
-    batch = sample(loaded, action, n, seed, mode, weights, sampling, end, end_from, end_to, steps)
-    batch.save(out)
+    batch = sample(loaded, action, n, seed, mode, weights, sampling, end, end_from, end_to, steps, lazy=True)
+    batch.save(out)  # decodes batch by batch while writing: memory stays flat in n
     if gif is not None:
         from odmo_cli.skeletons import get_skeleton
         from odmo_cli.viz import animate
 
-        k = min(len(batch.motions), 8)
-        animate(batch.motions[:k], get_skeleton(batch.dataset["skeleton"]), gif, fps=batch.dataset["fps"],
+        k = min(len(batch), 8)
+        animate(batch.head(k), get_skeleton(batch.dataset["skeleton"]), gif, fps=batch.dataset["fps"],
                 titles=[f"{a} #{i}" for i, a in enumerate(batch.actions[:k])])
     _summary(batch, out, as_json)
 

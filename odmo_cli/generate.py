@@ -15,7 +15,7 @@ import torch
 
 from odmo_cli.data.manifest import normalize_action
 from odmo_cli.errors import UserError
-from odmo_cli.io import load_checkpoint, save_npz
+from odmo_cli.io import StreamedArray, load_checkpoint, save_npz
 from odmo_cli.latent import ActionModes, fit_modes, knn_end_points, sample_codes
 from odmo_cli.models.odmo import ODMO, ODMOConfig
 from odmo_cli.skeletons import get_skeleton
@@ -75,9 +75,13 @@ def load_odmo(spec: str | Path | None) -> LoadedODMO:
 
 @dataclass
 class MotionBatch:
-    """What `odmo sample` writes (DESIGN.md, Samples)."""
+    """What `odmo sample` writes (DESIGN.md, Samples).
 
-    motions: np.ndarray  # (N, T, J, 3) float32
+    With `lazy` sampling the motions are not decoded up front: `save` decodes and writes them
+    batch by batch (memory flat in N) and keeps only the reached end points.
+    """
+
+    motions: np.ndarray | None  # (N, T, J, 3) float32; None until decoded when lazy
     actions: np.ndarray  # (N,) str
     modes: np.ndarray  # (N,) int, -1 when not mode-aware
     codes: np.ndarray  # (N, D)
@@ -87,10 +91,21 @@ class MotionBatch:
     seed: int
     end_axes: tuple[int, ...] = ()  # axes the user fixed, for dist_e
     extra: dict = field(default_factory=dict)
+    labels: np.ndarray | None = None  # (N,) action indices, for lazy decoding
+    loaded: "LoadedODMO | None" = None
+    _reached: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.codes)
 
     @property
     def reached(self) -> np.ndarray:
-        return self.motions[:, -1, 0]  # (N, 3) root at the last frame
+        """(N, 3) root at the last frame."""
+        if self.motions is not None:
+            return self.motions[:, -1, 0]
+        if self._reached is None:
+            raise ValueError("motions not decoded yet: save() them first")
+        return self._reached
 
     def dist_e(self) -> float | None:
         """Mean squared distance between asked and reached end points over the fixed axes."""
@@ -99,9 +114,27 @@ class MotionBatch:
         axes = list(self.end_axes)
         return float(np.mean(np.sum((self.end_points[:, axes] - self.reached[:, axes]) ** 2, axis=1)))
 
+    def head(self, k: int) -> np.ndarray:
+        """The first k motions, decoding them if needed."""
+        if self.motions is not None:
+            return self.motions[:k]
+        return decode(self.loaded, self.codes[:k], self.labels[:k], self.end_points[:k])
+
+    def _motion_blocks(self, batch: int = 1000):
+        self._reached = np.empty((len(self), 3), dtype=np.float32)
+        for b in range(0, len(self), batch):
+            block = decode(self.loaded, self.codes[b:b + batch], self.labels[b:b + batch],
+                           self.end_points[b:b + batch])
+            self._reached[b:b + len(block)] = block[:, -1, 0]
+            yield block
+
     def save(self, path: str | Path) -> None:
         sk = get_skeleton(self.dataset["skeleton"])
-        save_npz(path, motions=self.motions, actions=self.actions.astype(str), modes=self.modes,
+        motions = self.motions
+        if motions is None:
+            cfg = self.loaded.model.cfg
+            motions = StreamedArray((len(self), cfg.length, cfg.n_joints, 3), np.float32, self._motion_blocks())
+        save_npz(path, motions=motions, actions=self.actions.astype(str), modes=self.modes,
                  codes=self.codes, end_points=self.end_points, fps=np.float32(self.dataset["fps"]),
                  skeleton=np.str_(sk.name), joint_names=np.array(sk.joint_names), parents=np.array(sk.parents),
                  up_axis=np.str_(self.dataset["up_axis"]), model=np.str_(self.model), seed=np.int64(self.seed),
@@ -151,8 +184,11 @@ def _end_points(loaded: LoadedODMO, action: int, codes: np.ndarray, fixed: np.nd
 def sample(loaded: LoadedODMO, actions: list[str], n: int, seed: int = 0, mode: int | None = None,
            mode_weights: list[float] | None = None, sampling: str = "mode-preserving",
            end: str | None = None, end_from: str | None = None, end_to: str | None = None,
-           steps: int = 10) -> MotionBatch:
-    """n motions per action. With end/end_from+end_to every motion is asked to end there."""
+           steps: int = 10, lazy: bool = False) -> MotionBatch:
+    """n motions per action. With end/end_from+end_to every motion is asked to end there.
+
+    lazy: leave the motions undecoded; `MotionBatch.save` then decodes them while writing.
+    """
     if n <= 0:
         raise UserError(f"--n must be a positive number of motions, got {n}")
     if sampling not in SAMPLING:
@@ -179,9 +215,9 @@ def sample(loaded: LoadedODMO, actions: list[str], n: int, seed: int = 0, mode: 
     labels = np.concatenate([np.full(len(p[1]), p[0]) for p in parts])
     codes = np.concatenate([p[1] for p in parts])
     ends = np.concatenate([p[3] for p in parts])
-    motions = decode(loaded, codes, labels, ends)
+    motions = None if lazy else decode(loaded, codes, labels, ends)
     return MotionBatch(motions, np.array(loaded.actions)[labels], np.concatenate([p[2] for p in parts]),
-                       codes, ends, loaded.dataset, loaded.source, seed, axes)
+                       codes, ends, loaded.dataset, loaded.source, seed, axes, labels=labels, loaded=loaded)
 
 
 def _end_targets(end, end_from, end_to, steps, up) -> tuple[list[np.ndarray | None], tuple[int, ...]]:
@@ -233,7 +269,8 @@ def interpolate(loaded: LoadedODMO, action: str, steps: int = 8, from_mode: int 
     ends = _end_points(loaded, a, codes, fixed)
     motions = decode(loaded, codes, np.full(steps, a), ends)
     return MotionBatch(motions, np.array([loaded.actions[a]] * steps), np.full(steps, -1), codes, ends,
-                       loaded.dataset, loaded.source, seed, axes, extra={"weights": w[:, 0]})
+                       loaded.dataset, loaded.source, seed, axes, extra={"weights": w[:, 0]},
+                       labels=np.full(steps, a), loaded=loaded)
 
 
 def refit_modes(loaded: LoadedODMO, seed: int = 0) -> None:

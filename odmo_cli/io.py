@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import contextlib
 import os
+from dataclasses import dataclass
 import tempfile
 import zipfile
 from pathlib import Path
-from typing import Iterator
+from typing import Iterable, Iterator
 
 import numpy as np
 import torch
@@ -46,14 +47,42 @@ def _umask() -> int:
     return mask
 
 
+@dataclass
+class StreamedArray:
+    """An array written batch by batch: its full shape and dtype, and an iterator of row blocks."""
+
+    shape: tuple[int, ...]
+    dtype: np.dtype
+    blocks: Iterable[np.ndarray]
+
+
 def save_npz(path: str | Path, **arrays) -> None:
-    """Write an uncompressed .npz atomically, byte-for-byte reproducible (fixed zip timestamps)."""
+    """Write an uncompressed .npz atomically, byte-for-byte reproducible (fixed zip timestamps).
+
+    A StreamedArray value is written block by block, so it is never whole in memory.
+    """
     with atomic_path(path) as tmp:
         with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED) as zf:
             for name, value in arrays.items():
                 info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
                 with zf.open(info, "w", force_zip64=True) as f:
-                    np.lib.format.write_array(f, np.asanyarray(value), allow_pickle=False)
+                    if isinstance(value, StreamedArray):
+                        _write_streamed(f, value)
+                    else:
+                        np.lib.format.write_array(f, np.asanyarray(value), allow_pickle=False)
+
+
+def _write_streamed(f, value: StreamedArray) -> None:
+    header = {"descr": np.lib.format.dtype_to_descr(np.dtype(value.dtype)), "fortran_order": False,
+              "shape": tuple(value.shape)}
+    np.lib.format.write_array_header_2_0(f, header)
+    rows = 0
+    for block in value.blocks:
+        block = np.ascontiguousarray(block, dtype=value.dtype)
+        f.write(block.tobytes())
+        rows += len(block)
+    if rows != value.shape[0]:
+        raise ValueError(f"streamed {rows} rows, the header says {value.shape[0]}")
 
 
 def save_checkpoint(path: str | Path, payload: dict) -> None:

@@ -185,7 +185,9 @@ def sample_codes(modes: ActionModes, n: int, rng: np.random.Generator, mode: int
 
 def knn_end_points(bank_codes: np.ndarray, bank_ends: np.ndarray, codes: np.ndarray, k: int = 1) -> np.ndarray:
     """End point of each code (n, D) as the mean end point of its k nearest bank codes (n, 3)."""
-    d = np.linalg.norm(codes[:, None, :] - bank_codes[None], axis=-1)  # (n, N)
+    from scipy.spatial.distance import cdist
+
+    d = cdist(codes, bank_codes)  # (n, N), without an (n, N, D) temporary: memory stays flat in n
     nearest = np.argsort(d, axis=1)[:, :k]
     return bank_ends[nearest].mean(1).astype(np.float32)
 

@@ -186,3 +186,15 @@ def test_sample_without_model_or_with_a_bad_one(tmp_path):
     res = CliRunner().invoke(app, ["sample", "--model", str(bad), "--action", "jump", "--out", str(tmp_path / "x.npz")])
     assert res.exit_code == 2 and "cannot load checkpoint" in res.stderr
     assert not (tmp_path / "x.npz").exists()
+
+
+def test_lazy_save_streams_the_same_bytes(lines_model, tmp_path):
+    loaded = load_odmo(lines_model)
+    eager = sample(loaded, ["all"], 7, seed=2, end="0.2,0.1")
+    lazy = sample(loaded, ["all"], 7, seed=2, end="0.2,0.1", lazy=True)
+    assert lazy.motions is None
+    eager.save(tmp_path / "a.npz")
+    lazy.save(tmp_path / "b.npz")
+    assert sha(tmp_path / "a.npz") == sha(tmp_path / "b.npz")
+    assert lazy.dist_e() == pytest.approx(eager.dist_e())
+    assert np.array_equal(lazy.head(3), eager.motions[:3])
