@@ -75,7 +75,10 @@ def save_npz(path: str | Path, **arrays) -> None:
 def _write_streamed(f, value: StreamedArray) -> None:
     header = {"descr": np.lib.format.dtype_to_descr(np.dtype(value.dtype)), "fortran_order": False,
               "shape": tuple(value.shape)}
-    np.lib.format.write_array_header_2_0(f, header)
+    try:  # the header version np.save would choose, so streamed and whole arrays give the same bytes
+        np.lib.format.write_array_header_1_0(f, header)
+    except ValueError:
+        np.lib.format.write_array_header_2_0(f, header)
     rows = 0
     for block in value.blocks:
         block = np.ascontiguousarray(block, dtype=value.dtype)
