@@ -22,17 +22,14 @@ err_console = Console(stderr=True)
 
 class _Group(TyperGroup):
     """Turns UserError from any command into one line on stderr and exit status 2
-    (TrainingError: exit 1); Ctrl-C ends with status 130 after the command has cleaned up."""
+    (TrainingError: exit 1). `train` ends a Ctrl-C with status 130 after saving its checkpoint."""
 
     def invoke(self, ctx):
         try:
             return super().invoke(ctx)
-        except UserError as exc:
+        except (UserError, TrainingError) as exc:
             err_console.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
-            raise typer.Exit(2) from None
-        except TrainingError as exc:
-            err_console.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
-            raise typer.Exit(1) from None
+            raise typer.Exit(2 if isinstance(exc, UserError) else 1) from None
 
 
 app = typer.Typer(cls=_Group, no_args_is_help=True, add_completion=False,
