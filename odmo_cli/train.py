@@ -52,6 +52,8 @@ class TrainConfig:
             raise UserError(f"learning rates must be positive, got {self.lr} and {self.lr_final}")
         if not (0 <= self.tf_end <= 1 and 0 <= self.tf_start <= 1):
             raise UserError("teacher-forcing rates must be in [0, 1]")
+        if self.same_class_fraction > 1:
+            raise UserError(f"--same-class-fraction must be in [0, 1], got {self.same_class_fraction}")
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":

@@ -288,6 +288,7 @@ def test_cli_train_and_info(tmp_path):
     (["--epochs", "0"], "epochs and batch size must be positive"),
     (["--model", "gan"], "unknown model 'gan'; valid: odmo, classifier"),
     (["--resume", "missing.pt"], "checkpoint not found"),
+    (["--same-class-fraction", "1.5"], "--same-class-fraction must be in [0, 1], got 1.5"),
 ])
 def test_cli_train_bad_input(tmp_path, args, message):
     out = tmp_path / "m.pt"
