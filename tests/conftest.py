@@ -184,6 +184,36 @@ def write_motion_folder(folder: Path, manifest_name: str = "humanact12", per_act
     return folder
 
 
+def corrupt_clip(path: Path, kind: str) -> None:
+    """Spoil one clip file the way a bad download or export would (kind names how)."""
+    if kind == "garbage":
+        path.write_bytes(b"this is not a numpy file \x00\x01\x02" * 10)
+    elif kind == "nan":
+        arr = np.load(path)
+        arr[3, 5, 1] = np.nan
+        np.save(path, arr)
+    elif kind == "inf":
+        arr = np.load(path)
+        arr[0, 0, 0] = np.inf
+        np.save(path, arr)
+    elif kind == "joints":
+        np.save(path, np.load(path)[:, :22])
+    elif kind == "shape":
+        np.save(path, np.load(path)[:, :, :2])
+    elif kind == "empty":
+        np.save(path, np.zeros((0, 24, 3)))
+    elif kind == "strings":
+        np.save(path, np.full((4, 24, 3), "x"))
+    elif kind == "truncated":
+        path.write_bytes(path.read_bytes()[:200])
+
+
+@pytest.fixture
+def spoil_clip():
+    """corrupt_clip(path, kind): garbage, truncated, nan, inf, joints, shape, empty, strings."""
+    return corrupt_clip
+
+
 @pytest.fixture
 def make_humanact12():
     """write_humanact12(folder, per_action=2, length=70, seed=0, actions=range(1, 13), n_joints=24)."""

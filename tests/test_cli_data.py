@@ -208,29 +208,22 @@ def test_prepare_cmu_then_show(run, tmp_path, cmu_fixture):
 # ================================================================ bad input: exit 2, one line, nothing written
 
 
-def _bad_humanact12(folder: Path, kind: str) -> None:
-    victim = sorted(folder.glob("*.npy"))[3]
-    if kind == "garbage":
-        victim.write_bytes(b"\x93NUMPY garbage garbage garbage")
-    elif kind == "nan":
-        arr = np.load(victim)
-        arr[10, 2, 0] = np.nan
-        np.save(victim, arr)
-    elif kind == "joints":
-        np.save(victim, np.load(victim)[:, :20])
-    elif kind == "empty_class":
+def _bad_humanact12(folder: Path, kind: str, spoil) -> None:
+    if kind == "empty_class":
         for p in folder.glob("*A12??.npy"):
             p.unlink()
+    else:
+        spoil(sorted(folder.glob("*.npy"))[3], kind)
 
 
 @pytest.mark.parametrize("kind,fragments", [
     ("garbage", ["unreadable npy"]),
     ("nan", ["non-finite"]),
-    ("joints", ["20 joints, skeleton humanact12 has 24"]),
+    ("joints", ["22 joints, skeleton humanact12 has 24"]),
     ("empty_class", ["empty classes", "throw"]),
 ])
-def test_prepare_bad_source_writes_nothing(run, tmp_path, humanact12_fixture, kind, fragments):
-    _bad_humanact12(humanact12_fixture, kind)
+def test_prepare_bad_source_writes_nothing(run, tmp_path, humanact12_fixture, spoil_clip, kind, fragments):
+    _bad_humanact12(humanact12_fixture, kind, spoil_clip)
     before = _listing(tmp_path)
     out = tmp_path / "out"
     assert_user_error(run("data", "prepare", humanact12_fixture, "--format", "humanact12", "--out", out),
@@ -240,11 +233,11 @@ def test_prepare_bad_source_writes_nothing(run, tmp_path, humanact12_fixture, ki
 
 
 @pytest.mark.parametrize("kind,fragments", [
-    ("garbage", ["unreadable npy"]), ("nan", ["non-finite"]), ("joints", ["20 joints"]),
+    ("garbage", ["unreadable npy"]), ("nan", ["non-finite"]), ("joints", ["22 joints"]),
     ("empty_class", ["empty classes", "throw"]),
 ])
-def test_show_bad_source(run, tmp_path, humanact12_fixture, kind, fragments):
-    _bad_humanact12(humanact12_fixture, kind)
+def test_show_bad_source(run, tmp_path, humanact12_fixture, spoil_clip, kind, fragments):
+    _bad_humanact12(humanact12_fixture, kind, spoil_clip)
     assert_user_error(run("data", "show", humanact12_fixture, "--action", "walk", "--n", "1",
                           "--out", tmp_path / "x.gif"), *fragments)
     assert not (tmp_path / "x.gif").exists()

@@ -262,37 +262,14 @@ def test_motion_folder_unknown_action_is_an_error_even_when_lenient(tmp_path, ma
             read_dataset(folder, manifest, strict=strict)
 
 
-def _corrupt(path: Path, kind: str) -> None:
-    if kind == "garbage":
-        path.write_bytes(b"this is not a numpy file \x00\x01\x02" * 10)
-    elif kind == "nan":
-        arr = np.load(path)
-        arr[3, 5, 1] = np.nan
-        np.save(path, arr)
-    elif kind == "inf":
-        arr = np.load(path)
-        arr[0, 0, 0] = np.inf
-        np.save(path, arr)
-    elif kind == "joints":
-        np.save(path, np.load(path)[:, :22])
-    elif kind == "shape":
-        np.save(path, np.load(path)[:, :, :2])
-    elif kind == "empty":
-        np.save(path, np.zeros((0, 24, 3)))
-    elif kind == "strings":
-        np.save(path, np.full((4, 24, 3), "x"))
-    elif kind == "truncated":
-        path.write_bytes(path.read_bytes()[:200])
-
-
 @pytest.mark.parametrize("kind,message", [
     ("garbage", "unreadable npy"), ("truncated", "unreadable npy"), ("nan", "non-finite"),
     ("inf", "non-finite"), ("joints", "22 joints, skeleton humanact12 has 24"),
     ("shape", r"expected \(T, 24, 3\)"), ("empty", r"expected \(T, 24, 3\)"), ("strings", "non-numeric"),
 ])
-def test_bad_clip_strict_and_lenient(humanact12_fixture, ha12_manifest, kind, message):
+def test_bad_clip_strict_and_lenient(humanact12_fixture, ha12_manifest, spoil_clip, kind, message):
     bad = sorted(humanact12_fixture.glob("*.npy"))[4]
-    _corrupt(bad, kind)
+    spoil_clip(bad, kind)
     with pytest.raises(UserError, match=message) as info:
         read_dataset(humanact12_fixture, ha12_manifest)
     assert bad.name in str(info.value) and "\n" not in str(info.value)
