@@ -166,8 +166,7 @@ def evaluate_samples(path: Path, classifier, real: RealSets, actions: list[str],
         raise UserError(f"samples {path} have actions {', '.join(unknown)} not in the dataset ({', '.join(actions)})")
     labels = np.array([actions.index(a) for a in names])
     logits, feats = classifier.predict(motions)
-    parents = None
-    row = set_metrics(logits, feats, labels, real.features[1], None, parents, real.apd,
+    row = set_metrics(logits, feats, labels, real.features[1], None, None, real.apd,
                       np.random.default_rng(cfg.seed))
     return {"name": path.name, "metrics": {k: [v, 0.0] for k, v in row.items()}, "per_repeat": [row]}
 
