@@ -154,7 +154,8 @@ def evaluate_odmo(loaded, classifier, real: RealSets, cfg: EvalConfig, progress=
             "per_action": n, "seconds": time.perf_counter() - start}
 
 
-def evaluate_samples(path: Path, classifier, real: RealSets, actions: list[str], cfg: EvalConfig) -> dict:
+def evaluate_samples(path: Path, classifier, real: RealSets, actions: list[str], cfg: EvalConfig,
+                     parents) -> dict:
     """Motions produced elsewhere (a samples .npz) against the same real sets: one set, no CI."""
     try:
         data = np.load(path, allow_pickle=False)
@@ -166,7 +167,7 @@ def evaluate_samples(path: Path, classifier, real: RealSets, actions: list[str],
         raise UserError(f"samples {path} have actions {', '.join(unknown)} not in the dataset ({', '.join(actions)})")
     labels = np.array([actions.index(a) for a in names])
     logits, feats = classifier.predict(motions)
-    row = set_metrics(logits, feats, labels, real.features[1], None, None, real.apd,
+    row = set_metrics(logits, feats, labels, real.features[1], motions, parents, real.apd,
                       np.random.default_rng(cfg.seed))
     return {"name": path.name, "metrics": {k: [v, 0.0] for k, v in row.items()}, "per_repeat": [row]}
 
@@ -252,6 +253,7 @@ def run_evaluation(models: list[str | None], dataset: str | None, data, classifi
         if with_customization:
             report.customization.append(customization(m, classifier, cfg))
     for path in samples:
-        report.rows.append(evaluate_samples(Path(path), classifier, real, list(manifest.action_names), cfg))
+        report.rows.append(evaluate_samples(Path(path), classifier, real, list(manifest.action_names), cfg,
+                                            manifest.skeleton.parents))
     report.seconds = time.perf_counter() - start
     return report

@@ -71,6 +71,10 @@ def test_samples_file_is_scored_like_the_model(lines_model, lines_folder, lines_
     logits, _ = load_classifier(lines_classifier).predict(data["motions"])
     expected = 100 * np.mean(logits.argmax(1) == np.array([["glide", "crouch"].index(a) for a in data["actions"]]))
     assert row["metrics"]["accuracy"][0] == pytest.approx(expected)
+    assert set(row["metrics"]) == set(report.rows[0]["metrics"])  # every column of the table
+    res = CliRunner().invoke(app, ["eval", "--samples", str(out), "--dataset", str(lines_folder),
+                                   "--classifier", str(lines_classifier), "--repeats", "1", "--per-action", "20"])
+    assert res.exit_code == 0, res.output
 
 
 def test_cli_eval_table_and_json(lines_model, lines_folder, lines_classifier, tmp_path):
