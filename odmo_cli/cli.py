@@ -373,12 +373,12 @@ def sample_cmd(
     seed: SeedOpt = 0, as_json: JsonOpt = False,
 ):
     """Generate motions of the given actions (npz as in DESIGN.md)."""
-    from odmo_cli.generate import load_odmo, sample
+    from odmo_cli.generate import load_model, sample
 
     if mode is not None and mode_weights is not None:
         raise UserError("give either --mode or --mode-weights, not both")
     weights = _floats(mode_weights, "--mode-weights") if mode_weights is not None else None
-    loaded = load_odmo(model)
+    loaded = load_model(model)
     batch = sample(loaded, action, n, seed, mode, weights, sampling, end, end_from, end_to, steps, lazy=True)
     batch.save(out)  # decodes batch by batch while writing: memory stays flat in n
     if gif is not None:

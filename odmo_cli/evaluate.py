@@ -131,9 +131,9 @@ def evaluate_real(real: RealSets, cfg: EvalConfig, parents) -> dict:
     return {"name": "Real motions", "metrics": summarize(rows), "per_repeat": rows}
 
 
-def evaluate_odmo(loaded, classifier, real: RealSets, cfg: EvalConfig, progress=None) -> dict:
-    """The protocol for one ODMO checkpoint."""
-    from odmo_cli.generate import sample
+def evaluate_model(loaded, classifier, real: RealSets, cfg: EvalConfig, progress=None) -> dict:
+    """The protocol for one generator checkpoint (ODMO with cfg.sampling; baselines from noise)."""
+    from odmo_cli.generate import LoadedODMO, sample
 
     rng = np.random.default_rng(cfg.seed + 30_000)
     n = cfg.n_for(loaded.dataset["name"])
@@ -141,7 +141,8 @@ def evaluate_odmo(loaded, classifier, real: RealSets, cfg: EvalConfig, progress=
     rows, seeds, start = [], [], time.perf_counter()
     for r in range(cfg.repeats):
         seed = cfg.seed + r
-        batch = sample(loaded, ["all"], n, seed=seed, sampling=cfg.sampling)
+        sampling = cfg.sampling if isinstance(loaded, LoadedODMO) else "mode-preserving"
+        batch = sample(loaded, ["all"], n, seed=seed, sampling=sampling)
         labels = np.array([loaded.actions.index(a) for a in batch.actions])
         logits, feats = classifier.predict(batch.motions)
         rows.append(set_metrics(logits, feats, labels, real.features[r + 1], batch.motions, parents,
@@ -149,7 +150,8 @@ def evaluate_odmo(loaded, classifier, real: RealSets, cfg: EvalConfig, progress=
         seeds.append(seed)
         if progress:
             progress(r + 1)
-    return {"name": Path(loaded.source).name + ("" if cfg.sampling == "mode-preserving" else f" ({cfg.sampling})"),
+    conv = isinstance(loaded, LoadedODMO) and cfg.sampling != "mode-preserving"
+    return {"name": Path(loaded.source).name + (f" ({cfg.sampling})" if conv else ""),
             "model": loaded.source, "metrics": summarize(rows), "per_repeat": rows, "seeds": seeds,
             "per_action": n, "seconds": time.perf_counter() - start}
 
@@ -222,13 +224,13 @@ def run_evaluation(models: list[str | None], dataset: str | None, data, classifi
     """Load everything once, compute real features once, evaluate every model (and samples file)."""
     from odmo_cli.data.locate import resolve
     from odmo_cli.data.readers import read_dataset
-    from odmo_cli.generate import SAMPLING, load_odmo
+    from odmo_cli.generate import SAMPLING, LoadedODMO, load_model
     from odmo_cli.models.classifier import check_matches, load_classifier
 
     if cfg.sampling not in SAMPLING:
         raise UserError(f"unknown sampling {cfg.sampling!r}; valid: {', '.join(SAMPLING)}")
     start = time.perf_counter()
-    loaded = [load_odmo(m) for m in (models or ([] if samples else [None]))]
+    loaded = [load_model(m) for m in (models or ([] if samples else [None]))]
     name = dataset or (loaded[0].dataset["name"] if loaded else None)
     if name is None:
         raise UserError("give --dataset with --samples")
@@ -249,8 +251,8 @@ def run_evaluation(models: list[str | None], dataset: str | None, data, classifi
                                                   "sampling": cfg.sampling, "seed": cfg.seed})
     report.rows.append(evaluate_real(real, cfg, manifest.skeleton.parents))
     for m in loaded:
-        report.rows.append(evaluate_odmo(m, classifier, real, cfg, progress))
-        if with_customization:
+        report.rows.append(evaluate_model(m, classifier, real, cfg, progress))
+        if with_customization and isinstance(m, LoadedODMO):  # baselines take no end point
             report.customization.append(customization(m, classifier, cfg))
     for path in samples:
         report.rows.append(evaluate_samples(Path(path), classifier, real, list(manifest.action_names), cfg,

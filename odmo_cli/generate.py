@@ -1,13 +1,18 @@
-"""Generation with a trained ODMO checkpoint: sample, interpolate, customise end points.
+"""Generation with a trained checkpoint: sample, interpolate, customise end points.
 
 Everything here needs only the checkpoint (weights, latent bank, fitted mode mixtures), never
 the dataset. Motions are decoded in batches, so memory stays flat in the number asked for.
+
+ODMO checkpoints get the whole on-demand toolbox. Baselines (kinds in BASELINES) plug in through
+their module's `model_from_checkpoint(ckpt) -> nn.Module`, whose model has `cfg.length`,
+`cfg.n_joints` and `generate(labels (N,), generator) -> motions (N, T, J, 3)` (first root at the
+origin); they are sampled from noise only, so modes and end points do not apply to them.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from importlib import resources
+from importlib import import_module, resources
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +27,7 @@ from odmo_cli.skeletons import get_skeleton
 
 SAMPLING = ("mode-preserving", "conventional")
 SHIPPED = {"humanact12": "odmo_humanact12.pt", "cmu": "odmo_cmu.pt", "cmu_mocap": "odmo_cmu.pt"}
+BASELINES = {"a2m": "odmo_cli.models.a2m", "dvgan": "odmo_cli.models.dvgan"}  # kind -> module
 
 
 @dataclass
@@ -47,13 +53,25 @@ class LoadedODMO:
         return ActionModes.from_plain(self.modes[group][action])
 
 
+@dataclass
+class LoadedBaseline:
+    """A baseline generator (Action2Motion, DVGAN): motions from noise, one action at a time."""
+
+    model: torch.nn.Module
+    kind: str
+    dataset: dict
+    source: str
+
+    actions = LoadedODMO.actions
+    action_index = LoadedODMO.action_index
+
+
 def shipped_path(name: str) -> Path | None:
     path = Path(str(resources.files("odmo_cli") / "assets" / "models" / SHIPPED[name]))
     return path if path.is_file() else None
 
 
-def load_odmo(spec: str | Path | None) -> LoadedODMO:
-    """A checkpoint path, or a shipped model's short name (humanact12, cmu); None: the default."""
+def _checkpoint(spec: str | Path | None) -> tuple[Path, dict]:
     spec = str(spec or "humanact12")
     if spec in SHIPPED:
         path = shipped_path(spec)
@@ -61,9 +79,32 @@ def load_odmo(spec: str | Path | None) -> LoadedODMO:
             raise UserError(f"no shipped model {spec!r} in this install; pass --model with a checkpoint path")
     else:
         path = Path(spec)
-    ckpt = load_checkpoint(path)
+    return path, load_checkpoint(path)
+
+
+def load_model(spec: str | Path | None) -> "LoadedODMO | LoadedBaseline":
+    """Any generator checkpoint: ODMO or a baseline (see the module docstring)."""
+    path, ckpt = _checkpoint(spec)
+    kind = ckpt.get("kind")
+    if kind == "odmo":
+        return _odmo_from(path, ckpt)
+    if kind not in BASELINES:
+        raise UserError(f"{path} holds a {kind!r} model; generators are: odmo, {', '.join(BASELINES)}")
+    model = import_module(BASELINES[kind]).model_from_checkpoint(ckpt)
+    model.eval()
+    return LoadedBaseline(model, kind, ckpt["dataset"], str(path))
+
+
+def load_odmo(spec: str | Path | None) -> LoadedODMO:
+    """A checkpoint path, or a shipped model's short name (humanact12, cmu); None: the default."""
+    path, ckpt = _checkpoint(spec)
     if ckpt.get("kind") != "odmo":
-        raise UserError(f"{path} holds a {ckpt.get('kind')!r} model; this command needs an ODMO checkpoint")
+        raise UserError(f"{path} holds a {ckpt.get('kind')!r} model; this command needs an ODMO checkpoint "
+                        "(modes, latent codes and end points are ODMO's)")
+    return _odmo_from(path, ckpt)
+
+
+def _odmo_from(path: Path, ckpt: dict) -> LoadedODMO:
     if "latent_bank" not in ckpt:
         raise UserError(f"{path} has no latent bank: its training did not finish (resume it to the end)")
     model = ODMO(ODMOConfig.from_dict(ckpt["config"]))
@@ -193,6 +234,15 @@ def sample(loaded: LoadedODMO, actions: list[str], n: int, seed: int = 0, mode: 
         raise UserError(f"--n must be a positive number of motions, got {n}")
     if sampling not in SAMPLING:
         raise UserError(f"unknown sampling {sampling!r}; valid: {', '.join(SAMPLING)}")
+    if isinstance(loaded, LoadedBaseline):
+        asked = {"--mode": mode is not None, "--mode-weights": mode_weights is not None,
+                 "--sampling conventional": sampling == "conventional",
+                 "--end/--end-from/--end-to": bool(end or end_from or end_to)}
+        for flag, given in asked.items():
+            if given:
+                raise UserError(f"{flag} needs an ODMO model; {loaded.source} is a {loaded.kind} model "
+                                "(it samples from noise only)")
+        return sample_baseline(loaded, actions, n, seed)
     if mode_weights is not None and (any(w < 0 for w in mode_weights) or sum(mode_weights) <= 0):
         raise UserError("--mode-weights must be non-negative numbers with a positive sum")
     up = get_skeleton(loaded.dataset["skeleton"]).up_index
@@ -218,6 +268,22 @@ def sample(loaded: LoadedODMO, actions: list[str], n: int, seed: int = 0, mode: 
     motions = None if lazy else decode(loaded, codes, labels, ends)
     return MotionBatch(motions, np.array(loaded.actions)[labels], np.concatenate([p[2] for p in parts]),
                        codes, ends, loaded.dataset, loaded.source, seed, axes, labels=labels, loaded=loaded)
+
+
+@torch.inference_mode()
+def sample_baseline(loaded: LoadedBaseline, actions: list[str], n: int, seed: int = 0,
+                    batch: int = 1000) -> MotionBatch:
+    """n motions per action from a baseline's noise, decoded in batches from one seeded generator."""
+    idx = list(range(len(loaded.actions))) if actions == ["all"] else [loaded.action_index(a) for a in actions]
+    labels = np.repeat(np.asarray(idx, dtype=np.int64), n)  # (N,)
+    gen = torch.Generator().manual_seed(seed)
+    cfg = loaded.model.cfg
+    motions = np.empty((len(labels), cfg.length, cfg.n_joints, 3), dtype=np.float32)
+    for b in range(0, len(labels), batch):
+        motions[b:b + batch] = loaded.model.generate(torch.from_numpy(labels[b:b + batch]), gen).numpy()
+    return MotionBatch(motions, np.array(loaded.actions)[labels], np.full(len(labels), -1),
+                       np.zeros((len(labels), 0), dtype=np.float32), np.full((len(labels), 3), np.nan, np.float32),
+                       loaded.dataset, loaded.source, seed, labels=labels, loaded=loaded)
 
 
 def _end_targets(end, end_from, end_to, steps, up) -> tuple[list[np.ndarray | None], tuple[int, ...]]:

@@ -200,3 +200,63 @@ def test_lazy_save_streams_the_same_bytes(lines_model, tmp_path):
     assert sha(tmp_path / "a.npz") == sha(tmp_path / "b.npz")
     assert lazy.dist_e() == pytest.approx(eager.dist_e())
     assert np.allclose(lazy.head(3), eager.motions[:3], atol=1e-5)  # a smaller batch rounds differently
+
+
+# -- baselines through the same sampler --------------------------------------------------------
+
+class _NoiseModel(torch.nn.Module):
+    """A stand-in baseline: each motion is its action index plus seeded noise."""
+
+    def __init__(self, length=5, n_joints=3):
+        super().__init__()
+        self.cfg = type("Cfg", (), {"length": length, "n_joints": n_joints})()
+
+    def generate(self, labels, generator):
+        noise = torch.randn(len(labels), self.cfg.length, self.cfg.n_joints, 3, generator=generator)
+        return labels.float()[:, None, None, None] + 0.01 * noise
+
+
+@pytest.fixture
+def noise_checkpoint(tmp_path, monkeypatch):
+    import sys
+    import types
+
+    from odmo_cli import generate
+    from odmo_cli.io import save_checkpoint
+
+    module = types.ModuleType("fake_baseline")
+    module.model_from_checkpoint = lambda ckpt: _NoiseModel(**ckpt["config"])
+    monkeypatch.setitem(sys.modules, "fake_baseline", module)
+    monkeypatch.setitem(generate.BASELINES, "fake", "fake_baseline")
+    path = tmp_path / "fake.pt"
+    save_checkpoint(path, {"kind": "fake", "config": {"length": 5, "n_joints": 3},
+                           "dataset": {"name": "toy", "actions": ["walk", "jump"], "skeleton": "humanact12",
+                                       "fps": 20.0, "length": 5, "up_axis": "-y"}})
+    return path
+
+
+def test_baseline_checkpoint_samples_through_the_common_sampler(noise_checkpoint):
+    from odmo_cli.generate import LoadedBaseline, load_model
+
+    loaded = load_model(noise_checkpoint)
+    assert isinstance(loaded, LoadedBaseline) and loaded.actions == ["walk", "jump"]
+    batch = sample(loaded, ["all"], 4, seed=3)
+    assert batch.motions.shape == (8, 5, 3, 3)
+    assert list(batch.actions) == ["walk"] * 4 + ["jump"] * 4
+    assert np.allclose(batch.motions[:4], 0, atol=0.1) and np.allclose(batch.motions[4:], 1, atol=0.1)
+    assert (batch.modes == -1).all() and batch.codes.shape == (8, 0) and batch.dist_e() is None
+    again = sample(loaded, ["jump"], 4, seed=3)
+    assert not np.array_equal(again.motions, sample(loaded, ["jump"], 4, seed=4).motions)
+    assert np.array_equal(again.motions, sample(loaded, ["jump"], 4, seed=3).motions)
+
+
+@pytest.mark.parametrize("kwargs, flag", [({"mode": 0}, "--mode"), ({"mode_weights": [1.0]}, "--mode-weights"),
+                                          ({"sampling": "conventional"}, "--sampling"), ({"end": "1,2"}, "--end")])
+def test_baseline_refuses_odmo_only_options(noise_checkpoint, kwargs, flag):
+    from odmo_cli.errors import UserError
+    from odmo_cli.generate import load_model
+
+    with pytest.raises(UserError, match=flag):
+        sample(load_model(noise_checkpoint), ["walk"], 2, **kwargs)
+    with pytest.raises(UserError, match="needs an ODMO checkpoint"):
+        load_odmo(noise_checkpoint)
