@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import sys
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -224,8 +225,6 @@ def train(
     data: DataOpt = None, seed: SeedOpt = 0, as_json: JsonOpt = False,
 ):
     """Train a model; checkpoints are written atomically, Ctrl-C keeps the last one."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
     from odmo_cli.data.readers import read_dataset
     from odmo_cli.train import TrainConfig, train_odmo
 
@@ -251,32 +250,12 @@ def train(
                      seed=seed, threads=threads, same_class_fraction=-1.0 if same_class is None else same_class)
     manifest, root = _resolve(dataset, data)
     clips = read_dataset(root, manifest)
-    # the bar starts with the first finished epoch, so an early error prints only its one line
-    bar = Progress(TextColumn("epoch"), MofNCompleteColumn(), BarColumn(), TimeRemainingColumn(),
-                   TextColumn("{task.fields[info]}"), console=err_console, disable=as_json)
-    task = bar.add_task("train", total=epochs, info="")
-
-    def show(log) -> None:
-        info = " ".join(f"{k} {v:.3g}" for k, v in log.terms.items() if k != "vae")
-        info += "".join(f" | val {k} {v:.3g}" for k, v in log.val.items())
-        info += f" | {log.clips_per_s:.0f} clips/s"
-        if not err_console.is_terminal:  # a log file gets a line per validation instead of a bar
-            if log.val and not as_json:
-                err_console.print(f"epoch {log.epoch}/{epochs} {info}", highlight=False)
-            return
-        bar.start()
-        bar.update(task, completed=log.epoch, info=info)
-
-    try:
-        result = train_odmo(clips, tc, out, overrides, resume, show)
-    except KeyboardInterrupt:
-        if bar.live.is_started:
-            bar.stop()
-        err_console.print(f"interrupted: the last completed epoch is saved in {out}")
-        raise typer.Exit(130) from None
-    finally:
-        if bar.live.is_started:
-            bar.stop()
+    with _epoch_bar(epochs, as_json) as show:
+        try:
+            result = train_odmo(clips, tc, out, overrides, resume, show)
+        except KeyboardInterrupt:
+            err_console.print(f"interrupted: the last completed epoch is saved in {out}")
+            raise typer.Exit(130) from None
     if as_json:
         return _print_json({"out": str(result.out), "epochs": result.epochs, "report": result.report})
     r = result.report
@@ -286,6 +265,34 @@ def train(
     console.print(f"latent space: centroid distance {r['centroid_distance']:.2f} (min {r['min_centroid_distance']:.2f}, "
                   f"alpha {r['alpha']:g}), spread {r['spread']:.2f}, nearest-centroid accuracy "
                   f"{100 * r['nearest_centroid_acc']:.1f}%")
+
+
+@contextmanager
+def _epoch_bar(epochs: int, quiet: bool):
+    """A progress callback for ODMO training: a rich bar on a terminal, a line per validation in a log."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    # the bar starts with the first finished epoch, so an early error prints only its one line
+    bar = Progress(TextColumn("epoch"), MofNCompleteColumn(), BarColumn(), TimeRemainingColumn(),
+                   TextColumn("{task.fields[info]}"), console=err_console, disable=quiet)
+    task = bar.add_task("train", total=epochs, info="")
+
+    def show(log) -> None:
+        info = " ".join(f"{k} {v:.3g}" for k, v in log.terms.items() if k != "vae")
+        info += "".join(f" | val {k} {v:.3g}" for k, v in log.val.items())
+        info += f" | {log.clips_per_s:.0f} clips/s"
+        if not err_console.is_terminal:
+            if log.val and not quiet:
+                err_console.print(f"epoch {log.epoch}/{epochs} {info}", highlight=False)
+            return
+        bar.start()
+        bar.update(task, completed=log.epoch, info=info)
+
+    try:
+        yield show
+    finally:
+        if bar.live.is_started:
+            bar.stop()
 
 
 def _train_classifier(dataset, data, epochs, batch_size, lr, out, seed, threads, as_json) -> None:
@@ -312,6 +319,32 @@ def _train_classifier(dataset, data, epochs, batch_size, lr, out, seed, threads,
     console.print(f"wrote {out}: validation accuracy {100 * report['val_accuracy']:.2f}% on "
                   f"{report['val_clips']} held-out clips (train {100 * report['train_accuracy']:.2f}%, "
                   f"{report['seconds']:.0f} s)")
+
+
+@app.command("ship")
+def ship_cmd(
+    dataset: Annotated[str, typer.Argument(help="humanact12 or cmu_mocap (cmu).")],
+    out: Annotated[Path, typer.Option("--out", help="Folder for the files (odmo_<name>.pt, classifier_<name>.pt).")],
+    skip_classifier: Annotated[bool, typer.Option("--skip-classifier", help="Train ODMO only.")] = False,
+    data: DataOpt = None, seed: SeedOpt = 0, as_json: JsonOpt = False,
+):
+    """Rebuild the shipped models of a dataset from scratch with its recipe (see odmo_cli/ship.py)."""
+    from odmo_cli.ship import RECIPES, build, recipe_name
+
+    with _epoch_bar(RECIPES[recipe_name(dataset)]["odmo"]["epochs"], as_json) as show:
+        try:
+            reports = build(dataset, data, out, seed, skip_classifier, show,
+                            say=lambda m: None if as_json else err_console.print(m, highlight=False))
+        except KeyboardInterrupt:
+            err_console.print("interrupted: run the same command again to continue the ODMO training")
+            raise typer.Exit(130) from None
+    if as_json:
+        return _print_json(reports)
+    if "classifier" in reports:
+        console.print(f"classifier: held-out accuracy {100 * reports['classifier']['val_accuracy']:.1f}%")
+    r = reports["odmo"]
+    console.print(f"ODMO: {r['epochs']} epochs, held-out joint error {r['held_out_mpjpe']:.3f}, "
+                  f"nearest-centroid accuracy {100 * r['nearest_centroid_acc']:.1f}%; files in {out}")
 
 
 @app.command("info")
