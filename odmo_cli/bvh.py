@@ -224,6 +224,7 @@ def write_bvh(path: str | Path, bvh: pybvh.Bvh) -> Path:
 class ExportReport:
     files: list[Path]
     max_error_mm: float  # largest |FK(BVH) - motion| over joints and frames
+    mean_error_mm: float
     max_stretch_mm: float  # largest deviation of a bone from its mean length: the BVH cannot keep it
 
 
@@ -239,15 +240,16 @@ def export_motions(motions: np.ndarray, actions, skeleton: Skeleton, fps: float,
     motions = np.asarray(motions)
     out_dir.mkdir(exist_ok=True)
     width = max(3, len(str(len(motions) - 1)))
-    files, err, stretch = [], 0.0, 0.0
+    files, err, total, stretch = [], 0.0, 0.0, 0.0
     for i, motion in enumerate(motions):
         bvh = motion_to_bvh(motion, skeleton, fps)
-        err = max(err, float(np.abs(bvh_positions(bvh, skeleton) - motion).max()))
+        dist = np.linalg.norm(bvh_positions(bvh, skeleton) - motion, axis=-1)  # (T, J)
+        err, total = max(err, float(dist.max())), total + float(dist.mean())
         lengths = np.linalg.norm(motion[:, 1:] - motion[:, list(skeleton.parents[1:])], axis=-1)  # (T, J-1)
         stretch = max(stretch, float(np.abs(lengths - lengths.mean(0)).max()))
         action = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in str(actions[i]))
         files.append(write_bvh(out_dir / f"{i:0{width}d}_{action}.bvh", bvh))
-    return ExportReport(files, 1000 * err, 1000 * stretch)
+    return ExportReport(files, 1000 * err, 1000 * total / max(len(motions), 1), 1000 * stretch)
 
 
 def export_samples(samples: str | Path, out_dir: str | Path) -> ExportReport:
