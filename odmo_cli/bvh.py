@@ -20,7 +20,8 @@ Writing (positions -> rotations) is lossy, so the convention is fixed here:
   carry the swing of each child bone: one rotation cannot aim three bones whose angles to each
   other change, and these joints make the positions exact.
 * Rotation channels are `Zrotation Yrotation Xrotation` (as the CMU and Character Creator BVH
-  files), unwrapped over time so curves have no 360-degree jumps.
+  files), each frame on the Euler branch nearest the previous frame: curves have no 180- or
+  360-degree jumps when the character turns round.
 With constant bone lengths the re-imported positions equal the motion's to the file's 6
 decimals; a generated motion whose bones stretch differs by that stretch (reported).
 """
@@ -152,7 +153,7 @@ def motion_to_bvh(motion: np.ndarray, skeleton: Skeleton, fps: float) -> pybvh.B
     parent_frames = torch.stack([frames[:, n.parent] if n.parent >= 0 else torch.eye(3, dtype=pos.dtype)
                                  .expand_as(frames[:, 0]) for n in nodes], 1)
     local = parent_frames.transpose(-1, -2) @ frames  # (T, K, 3, 3)
-    angles = np.unwrap(rotmat_to_euler(local.numpy(), EULER_ORDER), axis=0)  # (T, K, 3) radians
+    angles = continuous_euler(rotmat_to_euler(local.numpy(), EULER_ORDER))  # (T, K, 3) radians
 
     mean_len = lengths.mean(0).numpy()  # (J,)
     bvh_nodes: list = []  # pybvh's node list, End Sites included
@@ -198,6 +199,27 @@ def _global_frames(pos: torch.Tensor, bones: torch.Tensor, lengths: torch.Tensor
         else:
             frames.append(parent)
     return torch.stack(frames, 1)
+
+
+def continuous_euler(angles: np.ndarray) -> np.ndarray:
+    """Tait-Bryan angles (T, ..., 3) -> the same rotations with no jumps between frames.
+
+    Each frame's triple (a, b, c) also equals (a + pi, pi - b, c + pi), and any angle + 2 pi k;
+    per frame the candidate nearest the previous frame is kept, so a character turning round
+    gets smooth curves instead of 180- and 360-degree flips.
+    """
+    out = np.array(angles, dtype=np.float64)
+    flip = np.array([np.pi, np.pi, np.pi])
+    for t in range(1, len(out)):
+        prev = out[t - 1]
+        best, best_cost = None, None
+        for cand in (out[t], flip + out[t] * np.array([1.0, -1.0, 1.0])):
+            cand = cand + 2 * np.pi * np.round((prev - cand) / (2 * np.pi))
+            cost = np.abs(cand - prev).sum(-1, keepdims=True)
+            best = cand if best is None else np.where(cost < best_cost, cand, best)
+            best_cost = cost if best_cost is None else np.minimum(cost, best_cost)
+        out[t] = best
+    return out
 
 
 def bvh_positions(bvh: pybvh.Bvh, skeleton: Skeleton) -> np.ndarray:
