@@ -66,14 +66,24 @@ def read_bvh(path: str | Path) -> BvhClip:
             bvh = pybvh.read_bvh_file(path, world_up="+y")
             positions = bvh.joint_positions()  # (F, J, 3)
     except (ValueError, IndexError, OSError, KeyError) as exc:
-        msg = str(exc).replace(f" in file {path}", "").replace(str(path), path.name).strip()
-        raise UserError(f"{path.name}: {msg.splitlines()[0] if msg else type(exc).__name__}") from None
+        raise UserError(f"{path.name}: {_reason(exc, path)}") from None
     joints = [n for n in bvh.nodes if not n.is_end_site()]
     index = {id(n): i for i, n in enumerate(joints)}
     parents = tuple(-1 if n.parent is None else index[id(n.parent)] for n in joints)
     if not np.isfinite(positions).all():
         raise UserError(f"{path.name}: non-finite values in the MOTION block")
     return BvhClip(tuple(n.name for n in joints), parents, positions, float(bvh.fps))
+
+
+def _reason(exc: Exception, path: Path) -> str:
+    """pybvh's / numpy's message, in the words of the BVH format where they are cryptic."""
+    msg = str(exc).replace(f" in file {path}", "").replace(str(path), path.name).strip()
+    msg = msg.splitlines()[0] if msg else type(exc).__name__
+    if "number of columns changed" in msg:  # numpy.loadtxt on a ragged MOTION block
+        return "MOTION block is truncated or has a frame with a wrong number of values (" + msg.split(";")[0] + ")"
+    if "could not convert" in msg:
+        return f"MOTION block has a value that is not a number ({msg})"
+    return msg
 
 
 # ----------------------------------------------------------------------------- export

@@ -188,18 +188,22 @@ def test_malformed_files_are_skipped(tmp_path, bvh_dir):
     (src / "good.bvh").write_text(good)
     (src / "truncated.bvh").write_text(good[: len(good) // 2])  # MOTION block cut in the middle
     head, motion = good.split("MOTION", 1)
+    lines = motion.splitlines(keepends=True)
+    (src / "short.bvh").write_text(head + "MOTION" + "".join(lines[:-5]))  # whole frames missing
+    (src / "values.bvh").write_text(head + "MOTION" + "".join(lines[:3]) + "".join(  # a value short per frame
+        " ".join(ln.split()[:-1]) + "\n" for ln in lines[3:]))
     (src / "channels.bvh").write_text(head.replace("CHANNELS 3 Zrotation Yrotation Xrotation",
-                                                   "CHANNELS 2 Zrotation Yrotation", 1) + "MOTION" + motion)
-    (src / "extra.bvh").write_text(head.replace("CHANNELS 3 Zrotation Yrotation Xrotation",
-                                                "CHANNELS 3 Zrotation Yrotation", 1) + "MOTION" + motion)
-    labels = _labels(tmp_path / "l.csv", [(f, "walk") for f in ("good", "truncated", "channels", "extra")])
+                                                   "CHANNELS 3 Zrotation Yrotation", 1) + "MOTION" + motion)
+    names = ("good", "truncated", "short", "values", "channels")
+    labels = _labels(tmp_path / "l.csv", [(f, "walk") for f in names])
     result = import_bvh_folder(src, BvhImportConfig(skeleton="humanact12", labels=labels))
     assert result.clips.names == ["good"]
     reasons = {p.split(":")[0]: p for p in result.problems}
-    assert set(reasons) == {"truncated.bvh", "channels.bvh", "extra.bvh"}
-    assert "frames" in reasons["truncated.bvh"] or "columns" in reasons["truncated.bvh"]
-    assert "channel" in reasons["channels.bvh"].lower() or "values per frame" in reasons["channels.bvh"]
-    assert "channels" in reasons["extra.bvh"].lower()
+    assert set(reasons) == {f"{n}.bvh" for n in names[1:]}
+    assert "MOTION block is truncated" in reasons["truncated.bvh"]
+    assert "declares 171 frames but file contains 166" in reasons["short.bvh"]
+    assert "values per frame but the hierarchy declares" in reasons["values.bvh"]
+    assert "CHANNELS declares 3 channels but lists 2" in reasons["channels.bvh"]
 
 
 # ----------------------------------------------------------------------------- CLI
