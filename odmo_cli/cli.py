@@ -154,18 +154,37 @@ def data_fetch(dataset: Annotated[str, typer.Argument(help="Dataset name or a ma
 
 @data_app.command("prepare")
 def data_prepare(source: Annotated[Path, typer.Argument(help="The release folder to convert.")],
-                 fmt: Annotated[str, typer.Option("--format", help="humanact12 | cmu_a2m | folder")],
+                 fmt: Annotated[str, typer.Option("--format", help="humanact12 | cmu_a2m | folder | bvh")],
                  out: Annotated[Path, typer.Option("--out", help="New motion folder to write.")],
                  dataset: Annotated[Optional[str], typer.Option(
-                     "--dataset", help="Manifest for --format folder (e.g. uestc).")] = None):
-    """Validate a release and convert it into a motion folder (index.csv + npy + dataset.toml)."""
+                     "--dataset", help="Manifest for --format folder (e.g. uestc) or bvh (actions, fps, T).")] = None,
+                 labels: Annotated[Optional[Path], typer.Option(
+                     "--labels", help="bvh: CSV file,action (default: the dataset's trial list).")] = None,
+                 skeleton: Annotated[str, typer.Option("--skeleton", help="bvh: humanact12 | cmu20 | auto")] = "auto",
+                 fps: Annotated[Optional[float], typer.Option("--fps", help="bvh: frame rate to resample to (default: the dataset's).")] = None,
+                 unit: Annotated[str, typer.Option("--unit", help="bvh: the files' length unit: auto | m | cm | mm | in | cmu")] = "auto",
+                 joint_map: Annotated[Optional[Path], typer.Option("--joint-map", help="bvh: TOML joint map for other hierarchies.")] = None):
+    """Validate a release (or import a folder of BVH files) and write a motion folder (index.csv + npy + dataset.toml)."""
     from odmo_cli.data.locate import manifest_for_folder
     from odmo_cli.data.manifest import FORMATS, load_manifest
-    from odmo_cli.data.prepare import prepare
+    from odmo_cli.data.prepare import prepare, write_folder
 
     by_format = {"humanact12": "humanact12", "cmu_a2m": "cmu_mocap"}
+    if fmt == "bvh":
+        from odmo_cli.data.bvh_import import BvhImportConfig, import_bvh_folder
+
+        cfg = BvhImportConfig(skeleton=skeleton, dataset=dataset, fps=fps, unit=unit, labels=labels, joint_map=joint_map)
+        result = import_bvh_folder(source, cfg)
+        write_folder(result.clips, out)
+        m = result.clips.manifest
+        console.print(f"wrote {out}: {result.read} clips in {len(m.actions)} actions ({m.skeleton_name}, {m.fps:g} fps, "
+                      f"units {', '.join(sorted(set(result.units.values())))}); {len(result.problems)} file(s) skipped",
+                      highlight=False)
+        for problem in result.problems:
+            console.print(f"  skipped {problem}", highlight=False, markup=False)
+        return
     if fmt not in FORMATS:
-        raise UserError(f"unknown format {fmt!r}; valid: {', '.join(FORMATS)}")
+        raise UserError(f"unknown format {fmt!r}; valid: {', '.join(FORMATS)}, bvh")
     if fmt == "folder":
         manifest = load_manifest(dataset) if dataset else manifest_for_folder(source)
         # a motion folder of a named dataset: its actions and skeleton, already in its units
@@ -179,7 +198,7 @@ def data_prepare(source: Annotated[Path, typer.Argument(help="The release folder
 
 @data_app.command("show")
 def data_show(dataset: DatasetArg, action: Annotated[str, typer.Option("--action", help="Action name.")],
-              out: Annotated[Optional[Path], typer.Option("--out", help=".gif (animated) or .png")] = None,
+              out: Annotated[Optional[Path], typer.Option("--out", help=".gif or .mp4 (animated) or .png")] = None,
               n: Annotated[int, typer.Option("--n", help="How many clips.")] = 4,
               data: DataOpt = None, demo: DemoOpt = False, seed: SeedOpt = 0):
     """Render a few clips of one action as stick figures."""
@@ -198,7 +217,9 @@ def data_show(dataset: DatasetArg, action: Annotated[str, typer.Option("--action
     pick = np.sort(np.random.default_rng(seed).choice(idx, size=min(n, len(idx)), replace=False))
     motions = np.stack([crop_pad_shift(clips.motions[i], manifest.clip_length) for i in pick])
     out = out or Path(f"{manifest.name}_{manifest.actions[k].name}.gif")
-    animate(motions, manifest.skeleton, out, fps=manifest.fps, titles=[clips.names[i] for i in pick])
+    out, notice = animate(motions, manifest.skeleton, out, fps=manifest.fps, titles=[clips.names[i] for i in pick])
+    if notice:
+        err_console.print(notice, highlight=False, markup=False)
     console.print(f"wrote {out}: {len(pick)} {manifest.actions[k].name} clips from {root}")
 
 
@@ -403,6 +424,7 @@ def sample_cmd(
     end_to: Annotated[Optional[str], typer.Option("--end-to", help="Last end point of a segment.")] = None,
     steps: Annotated[int, typer.Option("--steps", help="End points on the --end-from/--end-to segment.")] = 10,
     gif: Annotated[Optional[Path], typer.Option("--gif", help="Also render the first motions to a GIF.")] = None,
+    bvh: Annotated[Optional[Path], typer.Option("--bvh", help="Also write one BVH file per motion into this folder.")] = None,
     seed: SeedOpt = 0, as_json: JsonOpt = False,
 ):
     """Generate motions of the given actions (npz as in DESIGN.md)."""
@@ -419,9 +441,61 @@ def sample_cmd(
         from odmo_cli.viz import animate
 
         k = min(len(batch), 8)
-        animate(batch.head(k), get_skeleton(batch.dataset["skeleton"]), gif, fps=batch.dataset["fps"],
-                titles=[f"{a} #{i}" for i, a in enumerate(batch.actions[:k])])
-    _summary(batch, out, as_json)
+        _, notice = animate(batch.head(k), get_skeleton(batch.dataset["skeleton"]), gif, fps=batch.dataset["fps"],
+                            titles=[f"{a} #{i}" for i, a in enumerate(batch.actions[:k])], end_points=batch.end_points[:k])
+        if notice:
+            err_console.print(notice, highlight=False, markup=False)
+    extra = None
+    if bvh is not None:
+        from odmo_cli.bvh import export_samples
+
+        report = export_samples(out, bvh)  # from the file just written: the batch is not kept decoded
+        extra = {"bvh": str(bvh), "bvh_files": len(report.files), "bvh_max_error_mm": report.max_error_mm,
+                 "bvh_mean_error_mm": report.mean_error_mm,
+                 "bone_stretch_mm": report.max_stretch_mm}
+    _summary(batch, out, as_json, extra)
+    if bvh is not None and not as_json:
+        _bvh_note(report, bvh)
+
+
+def _bvh_note(report, folder: Path) -> None:
+    console.print(f"wrote {len(report.files)} BVH files to {folder}: joint positions within "
+                  f"{report.max_error_mm:.2f} mm (mean {report.mean_error_mm:.2f} mm) of the motions (bones stretch by up to "
+                  f"{report.max_stretch_mm:.2f} mm; a BVH keeps each bone's mean length)", highlight=False)
+
+
+@app.command("export")
+def export_cmd(
+    samples: Annotated[Path, typer.Argument(help="A samples file (.npz) from odmo sample/interpolate.")],
+    bvh: Annotated[Path, typer.Option("--bvh", help="Folder for the BVH files (one per motion).")],
+    as_json: JsonOpt = False,
+):
+    """Write every motion of a samples file as a BVH file (y-up, metres, the model's fps)."""
+    from odmo_cli.bvh import export_samples
+
+    report = export_samples(samples, bvh)
+    if as_json:
+        return _print_json({"bvh": str(bvh), "files": [str(f) for f in report.files],
+                            "max_error_mm": report.max_error_mm,
+                            "mean_error_mm": report.mean_error_mm, "bone_stretch_mm": report.max_stretch_mm})
+    _bvh_note(report, bvh)
+
+
+@app.command("render")
+def render_cmd(
+    samples: Annotated[Path, typer.Argument(help="A samples file (.npz).")],
+    out: Annotated[Path, typer.Option("--out", help="Animation to write: .gif or .mp4 (.png: one still).")],
+    index: Annotated[Optional[int], typer.Option("--index", help="Render only this motion (default 0).")] = None,
+    grid: Annotated[Optional[str], typer.Option("--grid", help="ROWSxCOLS of the first motions, e.g. 4x5.")] = None,
+    trail: Annotated[bool, typer.Option("--trail", help="Draw the paths of the root, hands and feet so far.")] = False,
+):
+    """3-D stick-figure animation with ground plane, root trajectory and asked end point."""
+    from odmo_cli.viz import render_samples
+
+    written, notice = render_samples(samples, out, index, grid, trail)
+    if notice:
+        err_console.print(notice, highlight=False, markup=False)
+    console.print(f"wrote {written}", highlight=False)
 
 
 def _floats(text: str, flag: str) -> list[float]:

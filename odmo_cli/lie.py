@@ -50,7 +50,7 @@ from odmo_cli.skeletons import Skeleton, get_skeleton
 
 __all__ = [
     "hat", "vee", "so3_exp", "so3_log", "rotation_between",
-    "rest_directions", "rest_offsets", "root_frame_joints", "bone_lengths_from_pose",
+    "rest_directions", "rest_offsets", "root_frame_joints", "bone_lengths_from_pose", "joint_side", "body_frame",
     "inverse_kinematics", "forward_kinematics", "bone_groups", "scale_bones",
 ]
 
@@ -259,7 +259,7 @@ _REST_OVERRIDES: Mapping[str, Mapping[str, tuple[float, float, float]]] = {
 }
 
 
-def _side(name: str) -> float:
+def joint_side(name: str) -> float:
     """+1 for the subject's left, -1 for the right (uestc18: side a is taken as left, unverified)."""
     if name.startswith("left") or name.endswith("_a"):
         return 1.0
@@ -299,7 +299,7 @@ def rest_directions(
             coef = next((c for keys, c in _REST_BY_NAME if any(k in name for k in keys)), None)
         if coef is None:
             raise UserError(f"no rest direction for joint {name!r} of skeleton {sk.name!r}")
-        side = _side(name) if coef[0] else 0.0
+        side = joint_side(name) if coef[0] else 0.0
         d = side * coef[0] * left + coef[1] * up + coef[2] * fwd
         dirs[j] = d / np.linalg.norm(d)
     return torch.as_tensor(dirs + 0.0, dtype=dtype, device=device)  # + 0.0: no -0 entries
@@ -329,8 +329,8 @@ def root_frame_joints(skeleton: Skeleton | str) -> tuple[int, int, int]:
     spine = [j for j in children if any(k in sk.joint_names[j] for k in ("spine", "thorax"))]
     if len(hips) != 2 or len(spine) != 1:
         raise UserError(f"skeleton {sk.name!r} has no two hips and one spine joint below the root")
-    left = [j for j in hips if _side(sk.joint_names[j]) > 0]
-    right = [j for j in hips if _side(sk.joint_names[j]) < 0]
+    left = [j for j in hips if joint_side(sk.joint_names[j]) > 0]
+    right = [j for j in hips if joint_side(sk.joint_names[j]) < 0]
     if len(left) != 1 or len(right) != 1:
         raise UserError(f"skeleton {sk.name!r}: cannot tell its left hip from its right hip")
     return left[0], right[0], spine[0]
@@ -353,7 +353,7 @@ def _prepare_rest(rest_dirs, sk: Skeleton, like: torch.Tensor) -> torch.Tensor:
     return _normalize(rest)  # root row stays 0
 
 
-def _frame(left_dir: torch.Tensor, right_dir: torch.Tensor, up_dir: torch.Tensor) -> torch.Tensor:
+def body_frame(left_dir: torch.Tensor, right_dir: torch.Tensor, up_dir: torch.Tensor) -> torch.Tensor:
     """Orthonormal body frame (columns x, y, z) from unit hip and spine directions."""
     eps = torch.finfo(left_dir.dtype).eps
     x = _normalize(left_dir - right_dir, eps)
@@ -402,8 +402,8 @@ def inverse_kinematics(
     zero = length2 <= torch.finfo(x.dtype).tiny
     dirs = offsets / torch.sqrt(torch.where(zero, torch.ones_like(length2), length2))
 
-    frame = _frame(dirs[..., lh, :], dirs[..., rh, :], dirs[..., sp, :])
-    frame_rest = _frame(rest[lh], rest[rh], rest[sp])
+    frame = body_frame(dirs[..., lh, :], dirs[..., rh, :], dirs[..., sp, :])
+    frame_rest = body_frame(rest[lh], rest[rh], rest[sp])
     w_root = so3_log(frame @ frame_rest.transpose(-1, -2))
     rots: list[torch.Tensor | None] = [None] * sk.n_joints
     rots[0] = so3_exp(w_root)  # use exp(log(.)) so IK and FK share the exact same frames

@@ -16,7 +16,8 @@ matplotlib.use("Agg")  # rendering to files only; never needs a display
 
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
+from matplotlib import animation  # noqa: E402
+from matplotlib.animation import PillowWriter  # noqa: E402
 
 from odmo_cli.errors import UserError  # noqa: E402
 from odmo_cli.io import atomic_path  # noqa: E402
@@ -35,8 +36,8 @@ def _limits(points: np.ndarray) -> tuple[np.ndarray, float]:
     return (lo + hi) / 2, float((hi - lo).max() / 2 * 0.75 + 0.05)
 
 
-def _figure(n: int, titles: Sequence[str] | None):
-    cols = min(n, 5)
+def _figure(n: int, titles: Sequence[str] | None, cols: int | None = None):
+    cols = cols or min(n, 5)
     rows = (n + cols - 1) // cols
     fig = plt.figure(figsize=(2.6 * cols, 2.8 * rows))
     fig.subplots_adjust(left=0, right=1, bottom=0, top=0.92, wspace=0, hspace=0.05)
@@ -49,43 +50,127 @@ def _figure(n: int, titles: Sequence[str] | None):
     return fig, axes
 
 
+def _trail_joints(skeleton: Skeleton) -> list[int]:
+    """The root and the chains' end joints (hands, feet, head): what --trail follows."""
+    return [0] + sorted({chain[-1] for chain in skeleton.chains})
+
+
+def _writer_for(out: Path, fps: float):
+    """(path actually written, matplotlib writer or None for a still, notice or "")."""
+    suffix = out.suffix.lower()
+    if suffix == ".png":
+        return out, None, ""
+    if suffix == ".mp4":
+        if animation.writers.is_available("ffmpeg"):
+            return out, animation.FFMpegWriter(fps=fps), ""
+        gif = out.with_suffix(".gif")
+        return gif, PillowWriter(fps=fps), f"note: ffmpeg not found, wrote {gif.name} (GIF) instead of {out.name}"
+    if suffix == ".gif":
+        return out, PillowWriter(fps=fps), ""
+    raise UserError(f"cannot render to {out.name}: valid extensions are .gif, .mp4 and .png")
+
+
 def animate(motions: np.ndarray, skeleton: Skeleton, out: str | Path, fps: float = 20,
-            titles: Sequence[str] | None = None) -> Path:
-    """Write motions (N, T, J, 3) as one animated GIF (a grid, one cell per motion)."""
+            titles: Sequence[str] | None = None, end_points: np.ndarray | None = None,
+            trail: bool = False, cols: int | None = None) -> tuple[Path, str]:
+    """Write motions (N, T, J, 3) as one animation (a grid, one cell per motion).
+
+    Each cell has a ground plane at the lowest foot height, the root trajectory on it, and the
+    asked end point (end_points (N, 3), dataset frame; NaN rows are skipped) as a cross. With
+    `trail` the paths of the root, hands, feet and head so far are drawn. `.mp4` needs ffmpeg,
+    else a GIF is written beside it. Returns (the path written, a notice or "").
+    """
     out = Path(out)
-    if out.suffix.lower() not in (".gif", ".png"):
-        raise UserError(f"cannot render to {out.name}: valid extensions are .gif and .png")
-    motions = to_plot_frame(np.asarray(motions, dtype=np.float32), skeleton)
-    if motions.ndim != 4:
-        raise UserError(f"motions must be (N, T, J, 3), got {motions.shape}")
-    fig, axes = _figure(len(motions), titles)
-    lines = []
-    for ax, motion in zip(axes, motions):
+    written, writer, notice = _writer_for(out, fps)
+    motions = np.asarray(motions, dtype=np.float32)
+    if motions.ndim != 4 or motions.shape[-1] != 3 or motions.shape[2] != skeleton.n_joints or not len(motions):
+        raise UserError(f"motions must be (N, T, {skeleton.n_joints}, 3), got {motions.shape}")
+    motions = to_plot_frame(motions, skeleton)  # (N, T, J, 3) as (ground_a, ground_b, up)
+    ends = None if end_points is None else to_plot_frame(np.asarray(end_points, dtype=np.float32), skeleton)
+    fig, axes = _figure(len(motions), titles, cols)
+    lines, trails = [], []
+    follow = _trail_joints(skeleton)
+    for i, (ax, motion) in enumerate(zip(axes, motions)):
         centre, radius = _limits(motion)
+        floor = float(motion[..., 2].min())
         ax.set_xlim(centre[0] - radius, centre[0] + radius)
         ax.set_ylim(centre[1] - radius, centre[1] + radius)
         ax.set_zlim(centre[2] - radius, centre[2] + radius)
-        ax.plot(motion[:, 0, 0], motion[:, 0, 1], motion[:, 0, 2], color="0.7", lw=0.8)  # root path
+        gx, gy = np.meshgrid([centre[0] - radius, centre[0] + radius], [centre[1] - radius, centre[1] + radius])
+        ax.plot_surface(gx, gy, np.full_like(gx, floor), color="0.85", alpha=0.4, linewidth=0)
+        ax.plot(motion[:, 0, 0], motion[:, 0, 1], np.full(len(motion), floor), color="0.55", lw=0.8)
+        if ends is not None and np.isfinite(ends[i, :2]).all():
+            ax.plot([ends[i, 0]], [ends[i, 1]], [floor], marker="x", color="crimson", ms=6, ls="")
         lines.append([ax.plot([], [], [], lw=2, color=f"C{k}")[0] for k in range(len(skeleton.chains))])
+        trails.append([ax.plot([], [], [], lw=0.7, color="0.3", alpha=0.6)[0] for _ in follow] if trail else [])
 
     def draw(t: int):
-        for motion, chain_lines in zip(motions, lines):
-            pose = motion[min(t, len(motion) - 1)]
+        for motion, chain_lines, trail_lines in zip(motions, lines, trails):
+            now = min(t, len(motion) - 1)
+            pose = motion[now]
             for line, chain in zip(chain_lines, skeleton.chains):
                 pts = pose[list(chain)]
                 line.set_data_3d(pts[:, 0], pts[:, 1], pts[:, 2])
-        return [ln for chain_lines in lines for ln in chain_lines]
+            for line, j in zip(trail_lines, follow):
+                path = motion[: now + 1, j]
+                line.set_data_3d(path[:, 0], path[:, 1], path[:, 2])
+        return [ln for group in lines + trails for ln in group]
 
     n_frames = max(len(m) for m in motions)
-    with atomic_path(out, suffix=out.suffix) as tmp:
-        if out.suffix.lower() == ".png":
-            draw(n_frames // 2)
-            fig.savefig(tmp, format="png", dpi=80)
-        else:
-            anim = FuncAnimation(fig, draw, frames=n_frames, blit=False)
-            anim.save(str(tmp), writer=PillowWriter(fps=fps), dpi=60)
-    plt.close(fig)
-    return out
+    try:
+        with atomic_path(written, suffix=written.suffix) as tmp:
+            if writer is None:
+                draw(n_frames // 2)
+                fig.savefig(tmp, format="png", dpi=80)
+            else:
+                animation.FuncAnimation(fig, draw, frames=n_frames, blit=False).save(str(tmp), writer=writer, dpi=60)
+    finally:
+        plt.close(fig)
+    return written, notice
+
+
+def render_samples(samples: str | Path, out: str | Path, index: int | None = None, grid: str | None = None,
+                   trail: bool = False) -> tuple[Path, str]:
+    """`odmo render`: one motion (--index, default 0) or a ROWSxCOLS grid of the first motions."""
+    from odmo_cli.skeletons import get_skeleton
+
+    samples = Path(samples)
+    if index is not None and grid is not None:
+        raise UserError("give either --index or --grid, not both")
+    if not samples.is_file():
+        raise UserError(f"samples file not found: {samples}")
+    try:
+        with np.load(samples, allow_pickle=False) as f:
+            n = len(f["motions"])
+            fps, skeleton = float(f["fps"]), get_skeleton(str(f["skeleton"]))
+            if grid is not None:
+                rows, cols = _grid(grid)
+                pick = list(range(min(n, rows * cols)))
+            else:
+                index = 0 if index is None else index
+                if not 0 <= index < n:
+                    raise UserError(f"--index {index} is out of range: {samples.name} has {n} motions (0..{n - 1})")
+                pick, cols = [index], None
+            motions = f["motions"][pick[0]: pick[-1] + 1]
+            actions = f["actions"][pick[0]: pick[-1] + 1] if "actions" in f else [""] * len(pick)
+            ends = f["end_points"][pick[0]: pick[-1] + 1] if "end_points" in f else None
+    except KeyError as exc:
+        raise UserError(f"{samples} is not an odmo samples file (no {exc.args[0]})") from None
+    except (ValueError, OSError) as exc:
+        raise UserError(f"cannot read {samples}: {exc}") from None
+    titles = [f"{a} #{i}" for i, a in zip(pick, actions)]
+    return animate(motions, skeleton, out, fps=fps, titles=titles, end_points=ends, trail=trail, cols=cols)
+
+
+def _grid(text: str) -> tuple[int, int]:
+    parts = text.lower().split("x")
+    try:
+        rows, cols = (int(p) for p in parts)
+    except ValueError:
+        rows = cols = 0
+    if len(parts) != 2 or rows <= 0 or cols <= 0:
+        raise UserError(f"--grid must be ROWSxCOLS with positive numbers, e.g. 4x5; got {text!r}")
+    return rows, cols
 
 
 def latent_plot(codes: np.ndarray, colours: np.ndarray, names: Sequence[str], out: str | Path,

@@ -286,8 +286,10 @@ def test_unknown_dataset_name(run, tmp_path):
                       "cmu_mocap")
     assert_user_error(run("data", "show", "nosuch", "--action", "walk"), "unknown dataset 'nosuch'")
     assert_user_error(run("data", "info", "nosuch", "--demo"), "no demo subset for 'nosuch'")
+    assert_user_error(run("data", "prepare", tmp_path, "--format", "fbx", "--out", tmp_path / "o"),
+                      "unknown format 'fbx'", "humanact12", "bvh")
     assert_user_error(run("data", "prepare", tmp_path, "--format", "bvh", "--out", tmp_path / "o"),
-                      "unknown format 'bvh'", "humanact12")
+                      "no .bvh files in")
     assert not (tmp_path / "o").exists()
     assert_user_error(run("data", "prepare", tmp_path, "--format", "folder", "--dataset", "nosuch",
                           "--out", tmp_path / "o"), "unknown dataset 'nosuch'")
@@ -305,10 +307,10 @@ def test_show_unknown_action(run, tmp_path):
 def test_show_bad_options(run, tmp_path):
     assert_user_error(run("data", "show", "humanact12", "--demo", "--action", "walk", "--n", "0"), "--n")
     assert_user_error(run("data", "show", "humanact12", "--demo", "--action", "walk", "--n", "1",
-                          "--out", tmp_path / "a.mp4"), "a.mp4", ".gif")
+                          "--out", tmp_path / "a.avi"), "a.avi", ".gif", ".mp4")
     assert_user_error(run("data", "show", "humanact12", "--demo", "--action", "walk", "--n", "1",
                           "--out", tmp_path / "no" / "a.gif"), "does not exist")
-    assert _listing(tmp_path / "cwd") == [] and not (tmp_path / "a.mp4").exists()
+    assert _listing(tmp_path / "cwd") == [] and not (tmp_path / "a.avi").exists()
 
 
 def test_prepare_into_existing_folder(run, tmp_path, humanact12_fixture):

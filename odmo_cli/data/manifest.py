@@ -30,6 +30,7 @@ class Action:
     name: str  # command-line name, e.g. "warm_up"
     label: str  # the label as the release writes it, e.g. "Warm up" or "1"
     count: int  # clips in the release, as the papers report
+    trials: tuple[str, ...] = ()  # source trials of this action (CMU: ids like "02_01"), for BVH import
 
 
 @dataclass(frozen=True)
@@ -120,7 +121,8 @@ def load_manifest(name_or_path: str | Path) -> Manifest:
 def _parse(raw: dict, path: Path) -> Manifest:
     try:
         actions = tuple(
-            Action(a["name"], str(a.get("label", a["name"])), int(a.get("count", 0)))
+            Action(a["name"], str(a.get("label", a["name"])), int(a.get("count", 0)),
+                   tuple(str(t) for t in a.get("trials", ())))
             for a in raw["actions"]
         )
         checks = raw.get("checksums", {})
