@@ -236,7 +236,7 @@ def train(
     lr_final: Annotated[Optional[float], typer.Option("--lr-final", help="Cosine-decay target (default: constant lr).")] = None,
     tf_epochs: Annotated[int, typer.Option("--tf-epochs", help="Teacher forcing decays 1 -> 0.3 over these epochs (0: all).")] = 0,
     ablate: Annotated[Optional[list[str]], typer.Option("--ablate", help="Drop a part: es, traj, cons, end-point (repeatable).")] = None,
-    same_class: Annotated[Optional[float], typer.Option("--same-class-fraction", help="Share of same-action pairs (default: independent random pairs, as in the paper).")] = None,
+    same_class: Annotated[Optional[float], typer.Option("--same-class-fraction", help="Share of same-action pairs (default 0.5, as the authors' release; -1: independent random pairs).")] = None,
     checkpoint_every: Annotated[int, typer.Option("--checkpoint-every", help="Epochs between checkpoints.")] = 25,
     val_every: Annotated[int, typer.Option("--val-every", help="Epochs between validation losses.")] = 10,
     out: Annotated[Optional[Path], typer.Option("--out", help="Checkpoint to write (default <model>.pt).")] = None,
@@ -259,8 +259,8 @@ def train(
         raise UserError(f"unknown model {model!r}; valid: odmo, classifier")
     if device != "cpu":
         raise UserError(f"device {device!r} is not supported; valid: cpu")
-    if same_class is not None and not 0 <= same_class <= 1:
-        raise UserError(f"--same-class-fraction must be in [0, 1], got {same_class}")
+    if same_class is not None and not (0 <= same_class <= 1 or same_class == -1):
+        raise UserError(f"--same-class-fraction must be in [0, 1] (or -1: independent pairs), got {same_class}")
     bad = [a for a in ablate or [] if a not in ABLATIONS]
     if bad:
         raise UserError(f"unknown ablation {bad[0]!r}; valid: {', '.join(ABLATIONS)}")
@@ -268,7 +268,7 @@ def train(
                  "use_cons": "cons" not in (ablate or []), "use_end_point": "end-point" not in (ablate or [])}
     tc = TrainConfig(epochs=epochs, batch_size=batch_size, lr=lr, lr_final=lr if lr_final is None else lr_final,
                      tf_epochs=tf_epochs, checkpoint_every=checkpoint_every, val_every=val_every,
-                     seed=seed, threads=threads, same_class_fraction=-1.0 if same_class is None else same_class)
+                     seed=seed, threads=threads, same_class_fraction=0.5 if same_class is None else same_class)
     manifest, root = _resolve(dataset, data)
     clips = read_dataset(root, manifest)
     with _epoch_bar(epochs, as_json) as show:

@@ -37,7 +37,7 @@ class TrainConfig:
     tf_end: float = 0.3
     tf_epochs: int = 0  # teacher forcing decays linearly over this many epochs (0: all epochs)
     pairs_per_epoch: int = 0  # 0: as many pairs as training clips
-    same_class_fraction: float = -1.0  # < 0: independent random pairs, as in the paper
+    same_class_fraction: float = 0.5  # the release pairs each clip with its class half the time; < 0: independent pairs
     val_fraction: float = 0.1
     val_every: int = 10  # epochs between validation losses
     checkpoint_every: int = 25  # epochs between checkpoints (and one at the end)

@@ -87,6 +87,23 @@ def test_terms_vanish_for_a_perfect_reconstruction():
     assert terms["es"].item() == pytest.approx(0.0, abs=1e-5)
 
 
+def test_trajectory_loss_position_vs_velocity_known_values():
+    """A constant drift of 0.1 per frame along x: positions err by 0.1 t, velocities by 0.1 each step."""
+    cfg = tiny_config()
+    T = cfg.length
+    motion = torch.zeros(1, T, cfg.n_joints, 3)
+    drift = torch.zeros(1, T, 3)
+    drift[0, :, 0] = 0.1 * torch.arange(1, T + 1)
+    out = {"trajectory": drift, "motion": motion, "mu": torch.zeros(1, 5), "logvar": torch.zeros(1, 5)}
+    pos = losses.odmo_terms(out, motion, torch.tensor([0]), cfg)["r"].item()
+    vel = losses.odmo_terms(out, motion, torch.tensor([0]), tiny_config(traj_loss="velocity"))["r"].item()
+    # per frame: the mean over the 3 coordinates of the squared error, summed over time
+    assert pos == pytest.approx(sum((0.1 * t) ** 2 / 3 for t in range(1, T + 1)))
+    assert vel == pytest.approx(T * 0.1 ** 2 / 3)
+    with pytest.raises(ValueError, match="traj_loss"):
+        tiny_config(traj_loss="angles")
+
+
 def test_ablation_switches_change_the_total():
     cfg = tiny_config()
     terms = {"mre": torch.tensor(1.0), "es": torch.tensor(2.0), "vae": torch.tensor(3.0),
@@ -288,7 +305,7 @@ def test_cli_train_and_info(tmp_path):
     (["--epochs", "0"], "epochs and batch size must be positive"),
     (["--model", "gan"], "unknown model 'gan'; valid: odmo, classifier"),
     (["--resume", "missing.pt"], "checkpoint not found"),
-    (["--same-class-fraction", "1.5"], "--same-class-fraction must be in [0, 1], got 1.5"),
+    (["--same-class-fraction", "1.5"], "--same-class-fraction must be in [0, 1] (or -1: independent pairs), got 1.5"),
 ])
 def test_cli_train_bad_input(tmp_path, args, message):
     out = tmp_path / "m.pt"

@@ -60,7 +60,10 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
     """
     w = coordinate_weights(cfg.up_axis, cfg.up_weight, motion.device)
     real_traj = motion[:, :, 0]  # (2B, T, 3)
-    l_r = sequence_error(root_velocities(out["trajectory"]), root_velocities(real_traj), w)
+    if cfg.traj_loss == "velocity":  # the paper's eq. 2
+        l_r = sequence_error(root_velocities(out["trajectory"]), root_velocities(real_traj), w)
+    else:  # the release: positions
+        l_r = sequence_error(out["trajectory"], real_traj, w)
     l_mre = sequence_error(out["motion"], motion, w)
     l_cons = sequence_error(out["trajectory"], out["motion"][:, :, 0])
     half = len(motion) // 2

@@ -33,6 +33,10 @@ class ODMOConfig:
     use_cons: bool = True
     up_axis: int = 1  # index of the vertical axis, weighted by up_weight in L_r and L_mre
     up_weight: float = 5.0  # the release weights the vertical coordinate x5
+    # L_r compares root positions (the authors' release: cumulated predicted velocities vs the
+    # real trajectory) or per-step velocities (the paper's eq. 2). With velocities the error of
+    # the end point is spread over T tiny terms and the model learns to ignore r_e.
+    traj_loss: str = "position"
 
     @classmethod
     def from_dict(cls, d: dict) -> "ODMOConfig":
@@ -41,6 +45,10 @@ class ODMOConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    def __post_init__(self):
+        if self.traj_loss not in ("position", "velocity"):
+            raise ValueError(f"traj_loss must be position or velocity, got {self.traj_loss!r}")
 
 
 def condition(onehot: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
