@@ -25,7 +25,7 @@ from odmo_cli.data.dataset import (
     split_indices,
     stratified_indices,
 )
-from odmo_cli.data.demo import demo_folder, pick_demo
+from odmo_cli.data.demo import demo_folder, load_demo, pick_demo
 from odmo_cli.data.locate import manifest_for_folder, resolve
 from odmo_cli.data.manifest import listing_digest, load_manifest, sha256_file
 from odmo_cli.data.prepare import prepare, summarize, write_folder
@@ -560,11 +560,12 @@ def test_prepare_bad_source_writes_nothing(tmp_path, humanact12_fixture, ha12_ma
 
 
 def test_demo_subsets_load():
-    ha = read_dataset(demo_folder("humanact12"), manifest_for_folder(demo_folder("humanact12")))
+    ha = load_demo("humanact12")
+    assert ha.names == read_dataset(demo_folder("humanact12"), manifest_for_folder(demo_folder("humanact12"))).names
     assert len(ha) == 36 and ha.counts().tolist() == [3] * 12
     assert ha.manifest.skeleton_name == "humanact12" and ha.manifest.clip_length == 60
     assert all(m.dtype == np.float32 and m.shape[1:] == (24, 3) and len(m) <= 120 for m in ha.motions)
-    cmu = read_dataset(demo_folder("cmu"), manifest_for_folder(demo_folder("cmu_mocap")))
+    cmu = load_demo("cmu")
     assert len(cmu) == 21 and cmu.counts().tolist() == [3] * 7
     assert cmu.manifest.skeleton_name == "cmu20"
     assert all(m.shape[1:] == (20, 3) and len(m) <= 200 for m in cmu.motions)

@@ -11,8 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
+from odmo_cli.data.locate import manifest_for_folder
 from odmo_cli.data.prepare import write_folder
-from odmo_cli.data.readers import ClipSet
+from odmo_cli.data.readers import ClipSet, read_dataset
 from odmo_cli.errors import UserError
 
 DEMO_ALIASES = {"humanact12": "humanact12", "cmu_mocap": "cmu_mocap", "cmu": "cmu_mocap"}
@@ -23,6 +24,12 @@ def demo_folder(name: str) -> Path:
     if name not in DEMO_ALIASES:
         raise UserError(f"no demo subset for {name!r}; valid: {', '.join(DEMO_ALIASES)}")
     return Path(str(resources.files("odmo_cli") / "assets" / "demo" / DEMO_ALIASES[name]))
+
+
+def load_demo(name: str) -> ClipSet:
+    """The shipped demo clips of a dataset, read with the folder's own manifest."""
+    folder = demo_folder(name)
+    return read_dataset(folder, manifest_for_folder(folder))
 
 
 def pick_demo(clips: ClipSet, per_action: int = 3) -> list[int]:
