@@ -212,3 +212,31 @@ def test_cli_bad_representation(tmp_path, args, message):
     assert res.exit_code == 2
     assert message in res.stderr and res.stderr.count("\n") == 1
     assert not out.exists()
+
+
+def test_ctrl_c_keeps_the_last_completed_epoch(clips, tmp_path, monkeypatch):
+    out = tmp_path / "m.pt"
+    trainer = A2MTrainer(clips, a2m_config_for(clips, "lie", TINY), tiny_tc(epochs=5), out)
+    one_epoch = trainer.train_epoch
+
+    def interrupted():
+        if trainer.epoch == 2:
+            raise KeyboardInterrupt
+        return one_epoch()
+
+    monkeypatch.setattr(trainer, "train_epoch", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        trainer.run()
+    ckpt = load_checkpoint(out)
+    assert ckpt["kind"] == "a2m" and ckpt["epoch"] == 2 and len(ckpt["history"]) == 2
+
+
+def test_cmu_skeleton_lie_model():
+    manifest, root = resolve(demo_folder("cmu"))
+    cmu = read_dataset(root, manifest)
+    trainer = A2MTrainer(cmu, a2m_config_for(cmu, "lie", TINY), tiny_tc(epochs=1), "unused.pt")
+    assert trainer.lambda_kl == 0.1 and trainer.model.cfg.pose_dim == 60
+    trainer.run()
+    motions = trainer.model.eval().generate(torch.arange(len(manifest.actions)), torch.Generator().manual_seed(0))
+    assert motions.shape == (len(manifest.actions), 10, 20, 3)
+    assert bone_length_consistency(motions.numpy(), manifest.skeleton.parents) < 1e-6
