@@ -8,7 +8,7 @@ one epoch differ. An epoch visits every training clip once, in random order, at 
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Callable
 
@@ -73,6 +73,8 @@ class A2MTrainer(Trainer):
 
     def __init__(self, clips: ClipSet, cfg: A2MConfig, tc: A2MTrainConfig, out: Path):
         # not Trainer.__init__, which builds ODMO; the attributes are the ones Trainer's methods use
+        if tc.lambda_kl < 0:  # resolved here so the checkpoint's train config shows the value used
+            tc = replace(tc, lambda_kl=paper_lambda_kl(clips.manifest.name))
         self.clips, self.cfg, self.tc, self.out = clips, cfg, tc, Path(out)
         if tc.threads:
             torch.set_num_threads(tc.threads)
@@ -86,7 +88,7 @@ class A2MTrainer(Trainer):
             raise UserError("need at least 1 training clip")
         self.model.bone_bank.copy_(bone_bank(clips, self.train_idx, cfg.bank_size, tc.seed))
         self.data = MotionDataset(clips, cfg.length, rng=self.np_rng)
-        self.lambda_kl = tc.lambda_kl if tc.lambda_kl >= 0 else paper_lambda_kl(clips.manifest.name)
+        self.lambda_kl = tc.lambda_kl
         self.epoch = 0
         self.history: list[dict] = []
 
