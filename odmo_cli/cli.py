@@ -234,7 +234,14 @@ def train(
     if model == "classifier":
         return _train_classifier(dataset, data, epochs, batch_size, lr, out, seed, threads, as_json)
     if model == "a2m":
-        return _train_a2m(dataset, data, representation, epochs, batch_size, lr, out, resume, seed, threads, as_json)
+        odmo_only = {"--ablate": ablate, "--same-class-fraction": same_class, "--lr-final": lr_final,
+                     "--tf-epochs": tf_epochs or None, "--device": None if device == "cpu" else device}
+        for flag, value in odmo_only.items():
+            if value is not None:
+                raise UserError(f"{flag} applies to --model odmo only")
+        given = {"epochs": epochs, "batch_size": batch_size, "lr": lr, "checkpoint_every": checkpoint_every,
+                 "val_every": val_every, "seed": seed, "threads": threads}
+        return _train_a2m(dataset, data, representation, given, out, resume, as_json)
     if representation is not None:
         raise UserError("--representation applies to --model a2m only")
     epochs = 300 if epochs is None else epochs
@@ -319,7 +326,7 @@ def _train_classifier(dataset, data, epochs, batch_size, lr, out, seed, threads,
                   f"{report['seconds']:.0f} s)")
 
 
-def _train_a2m(dataset, data, representation, epochs, batch_size, lr, out, resume, seed, threads, as_json) -> None:
+def _train_a2m(dataset, data, representation, given: dict, out, resume, as_json) -> None:
     """The Action2Motion baseline (xyz or Lie output); Ctrl-C keeps the last completed epoch."""
     from odmo_cli.data.readers import read_dataset
     from odmo_cli.models.a2m import REPRESENTATIONS
@@ -327,8 +334,7 @@ def _train_a2m(dataset, data, representation, epochs, batch_size, lr, out, resum
 
     if representation is not None and representation not in REPRESENTATIONS:
         raise UserError(f"unknown representation {representation!r}; valid: {', '.join(REPRESENTATIONS)}")
-    given = {"epochs": epochs, "batch_size": batch_size, "lr": lr}
-    tc = A2MTrainConfig.from_dict({"seed": seed, "threads": threads, **{k: v for k, v in given.items() if v is not None}})
+    tc = A2MTrainConfig.from_dict({k: v for k, v in given.items() if v is not None})
     manifest, root = _resolve(dataset, data)
     clips = read_dataset(root, manifest)
 

@@ -65,7 +65,9 @@ def test_optimizer_and_lambda_follow_the_config(clips):
     trainer = tiny_model(clips, "lie")
     group = trainer.opt.param_groups[0]
     assert isinstance(trainer.opt, torch.optim.Adam) and group["weight_decay"] == 1e-5
-    assert group["betas"] == (0.9, 0.999) and trainer.lambda_kl == 0.01
+    assert group["betas"] == (0.9, 0.999) and trainer.lambda_kl == 0.01 == trainer.tc.lambda_kl
+    cfg = a2m_config_for(clips, "lie", TINY)
+    assert A2MTrainer(clips, cfg, tiny_tc(lambda_kl=0.5), "unused.pt").lambda_kl == 0.5
 
 
 def test_bad_representation_is_a_user_error():
@@ -205,8 +207,10 @@ def test_cli_trains_samples_and_describes_a2m(tmp_path):
 @pytest.mark.parametrize("args, message", [
     (["--model", "a2m", "--representation", "quat"], "unknown representation 'quat'; valid: xyz, lie"),
     (["--representation", "lie"], "--representation applies to --model a2m only"),
+    (["--model", "a2m", "--ablate", "es"], "--ablate applies to --model odmo only"),
+    (["--model", "a2m", "--epochs", "0"], "epochs and batch size must be positive"),
 ])
-def test_cli_bad_representation(tmp_path, args, message):
+def test_cli_bad_a2m_options(tmp_path, args, message):
     out = tmp_path / "m.pt"
     res = CliRunner().invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--out", str(out), *args])
     assert res.exit_code == 2
