@@ -229,10 +229,11 @@ ABLATIONS = ("es", "traj", "cons", "end-point")
 @app.command("train")
 def train(
     dataset: Annotated[str, typer.Option("--dataset", help="Dataset name or folder.")] = "humanact12",
-    model: Annotated[str, typer.Option("--model", help="Model kind: odmo, classifier.")] = "odmo",
-    epochs: Annotated[Optional[int], typer.Option("--epochs", help="Default: 300 (odmo), 150 (classifier).")] = None,
-    batch_size: Annotated[Optional[int], typer.Option("--batch-size", help="Pairs per step (odmo, default 256); clips (classifier, 64).")] = None,
-    lr: Annotated[Optional[float], typer.Option("--lr", help="Default 1e-3.")] = None,
+    model: Annotated[str, typer.Option("--model", help="Model kind: odmo, classifier, a2m.")] = "odmo",
+    representation: Annotated[Optional[str], typer.Option("--representation", help="a2m output: lie (default) | xyz.")] = None,
+    epochs: Annotated[Optional[int], typer.Option("--epochs", help="Default: 300 (odmo), 150 (classifier), 500 (a2m).")] = None,
+    batch_size: Annotated[Optional[int], typer.Option("--batch-size", help="Pairs per step (odmo, default 256); clips (classifier, 64; a2m, 128).")] = None,
+    lr: Annotated[Optional[float], typer.Option("--lr", help="Default 1e-3 (a2m: 2e-4).")] = None,
     lr_final: Annotated[Optional[float], typer.Option("--lr-final", help="Cosine-decay target (default: constant lr).")] = None,
     tf_epochs: Annotated[int, typer.Option("--tf-epochs", help="Teacher forcing decays 1 -> 0.3 over these epochs (0: all).")] = 0,
     ablate: Annotated[Optional[list[str]], typer.Option("--ablate", help="Drop a part: es, traj, cons, end-point (repeatable).")] = None,
@@ -252,11 +253,22 @@ def train(
     out = out or Path(f"{model}.pt")
     if model == "classifier":
         return _train_classifier(dataset, data, epochs, batch_size, lr, out, seed, threads, as_json)
+    if model == "a2m":
+        odmo_only = {"--ablate": ablate, "--same-class-fraction": same_class, "--lr-final": lr_final,
+                     "--tf-epochs": tf_epochs or None, "--device": None if device == "cpu" else device}
+        for flag, value in odmo_only.items():
+            if value is not None:
+                raise UserError(f"{flag} applies to --model odmo only")
+        given = {"epochs": epochs, "batch_size": batch_size, "lr": lr, "checkpoint_every": checkpoint_every,
+                 "val_every": val_every, "seed": seed, "threads": threads}
+        return _train_a2m(dataset, data, representation, given, out, resume, as_json)
+    if representation is not None:
+        raise UserError("--representation applies to --model a2m only")
     epochs = 300 if epochs is None else epochs
     batch_size = 256 if batch_size is None else batch_size
     lr = 1e-3 if lr is None else lr
     if model != "odmo":
-        raise UserError(f"unknown model {model!r}; valid: odmo, classifier")
+        raise UserError(f"unknown model {model!r}; valid: odmo, classifier, a2m")
     if device != "cpu":
         raise UserError(f"device {device!r} is not supported; valid: cpu")
     if same_class is not None and not (0 <= same_class <= 1 or same_class == -1):
@@ -366,6 +378,36 @@ def ship_cmd(
     r = reports["odmo"]
     console.print(f"ODMO: {r['epochs']} epochs, held-out joint error {r['held_out_mpjpe']:.3f}, "
                   f"nearest-centroid accuracy {100 * r['nearest_centroid_acc']:.1f}%; files in {out}")
+
+
+def _train_a2m(dataset, data, representation, given: dict, out, resume, as_json) -> None:
+    """The Action2Motion baseline (xyz or Lie output); Ctrl-C keeps the last completed epoch."""
+    from odmo_cli.data.readers import read_dataset
+    from odmo_cli.models.a2m import REPRESENTATIONS
+    from odmo_cli.train_a2m import A2MTrainConfig, train_a2m
+
+    if representation is not None and representation not in REPRESENTATIONS:
+        raise UserError(f"unknown representation {representation!r}; valid: {', '.join(REPRESENTATIONS)}")
+    tc = A2MTrainConfig.from_dict({k: v for k, v in given.items() if v is not None})
+    manifest, root = _resolve(dataset, data)
+    clips = read_dataset(root, manifest)
+
+    def show(log) -> None:
+        if not as_json and (log.epoch % 10 == 0 or log.epoch == tc.epochs or log.val):
+            info = " ".join(f"{k} {v:.4g}" for k, v in {**log.terms, **{f"val {k}": v for k, v in log.val.items()}}.items())
+            err_console.print(f"epoch {log.epoch}/{tc.epochs} {info} | {log.clips_per_s:.0f} clips/s", highlight=False)
+
+    try:
+        result = train_a2m(clips, tc, out, representation, resume, show)
+    except KeyboardInterrupt:
+        err_console.print(f"interrupted: the last completed epoch is saved in {out}")
+        raise typer.Exit(130) from None
+    if as_json:
+        return _print_json({"out": str(result.out), "epochs": result.epochs, "report": result.report})
+    r = result.report
+    console.print(f"wrote {result.out} (a2m-{r['representation']}) after {result.epochs} epochs; held-out "
+                  f"({r['held_out_clips']} clips, teacher-forced): joint mse {r['held_out_mse']:.4g}, "
+                  f"KL {r['held_out_kl']:.4g} (lambda {r['lambda_kl']:g})")
 
 
 @app.command("info")

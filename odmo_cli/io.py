@@ -114,14 +114,18 @@ def describe_checkpoint(path: str | Path) -> dict:
     ckpt = load_checkpoint(path)
     if "kind" not in ckpt or "config" not in ckpt:
         raise UserError(f"{path} is not an odmo checkpoint (no model kind or config inside)")
-    n_params = sum(t.numel() for t in ckpt.get("state_dict", {}).values())
+    state = ckpt.get("state_dict", {})
+    # buffers such as A2M's bone-length bank are data, not parameters
+    n_params = sum(t.numel() for k, t in state.items() if k != "bone_bank")
     bank = ckpt.get("latent_bank")
     last = ckpt.get("history", [])[-1:] or [{}]
+    banks = {"latent_bank": f"{len(bank['codes'])} codes" if bank else "none (training not finished)"}
+    if ckpt["kind"] == "a2m":
+        banks = {"bone_bank": f"{len(state['bone_bank'])} real bone-length sets for sampling"}
     return {
         "file": str(path), "format_version": ckpt.get("format_version"), "kind": ckpt["kind"],
         "parameters": n_params, "epoch": ckpt.get("epoch"), "dataset": ckpt.get("dataset", {}),
-        "config": ckpt["config"], "train_config": ckpt.get("train_config", {}),
-        "latent_bank": f"{len(bank['codes'])} codes" if bank else "none (training not finished)",
+        "config": ckpt["config"], "train_config": ckpt.get("train_config", {}), **banks,
         "last_epoch_losses": {k: round(v, 5) if isinstance(v, float) else v for k, v in last[0].items()},
         "report": ckpt.get("report", {}),
     }

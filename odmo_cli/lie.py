@@ -51,7 +51,7 @@ from odmo_cli.skeletons import Skeleton, get_skeleton
 __all__ = [
     "hat", "vee", "so3_exp", "so3_log", "rotation_between",
     "rest_directions", "rest_offsets", "root_frame_joints", "bone_lengths_from_pose", "joint_side", "body_frame",
-    "inverse_kinematics", "forward_kinematics", "bone_groups", "scale_bones",
+    "inverse_kinematics", "forward_kinematics", "bone_groups", "scale_bones", "retarget",
 ]
 
 # Below this |theta| (resp. |sin theta|) the closed forms are replaced by Taylor series.
@@ -518,3 +518,21 @@ def scale_bones(
     for group, joints in bone_groups(sk).items():
         scale[list(joints)] *= factors[group]
     return lengths * scale
+
+
+def retarget(
+    positions: torch.Tensor | np.ndarray,
+    bone_lengths: torch.Tensor | np.ndarray,
+    skeleton: Skeleton | str,
+) -> torch.Tensor:
+    """The same motion (..., T, J, 3) on another body: its Lie parameters and root path, new lengths.
+
+    `bone_lengths` is (..., J), e.g. another clip's `bone_lengths_from_pose(clip).mean(-2)` or
+    `scale_bones(...)` of this one's (A2M Fig. 6); every frame gets exactly those lengths.
+    """
+    sk = _skeleton(skeleton)
+    root, w = inverse_kinematics(positions, sk)
+    lengths = _as_float_tensor(bone_lengths)
+    if lengths.dim() < 1 or lengths.shape[-1] != sk.n_joints:
+        raise UserError(f"bone_lengths must have shape (..., {sk.n_joints}), got {tuple(lengths.shape)}")
+    return forward_kinematics(root, w, lengths.unsqueeze(-2), sk)

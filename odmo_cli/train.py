@@ -103,6 +103,8 @@ def model_config_for(clips: ClipSet, overrides: dict | None = None) -> ODMOConfi
 class Trainer:
     """Holds model, optimizer, RNGs and data; `run` trains and checkpoints."""
 
+    kind = "odmo"  # the checkpoint's model kind; subclasses for other models change it
+
     def __init__(self, clips: ClipSet, cfg: ODMOConfig, tc: TrainConfig, out: Path):
         self.clips, self.cfg, self.tc, self.out = clips, cfg, tc, Path(out)
         if tc.threads:
@@ -122,7 +124,7 @@ class Trainer:
     # -- checkpoints -------------------------------------------------------------------------
     def state(self) -> dict:
         return {
-            "format_version": FORMAT_VERSION, "kind": "odmo", "config": self.cfg.to_dict(),
+            "format_version": FORMAT_VERSION, "kind": self.kind, "config": self.cfg.to_dict(),
             "train_config": asdict(self.tc), "dataset": dataset_description(self.clips),
             "state_dict": self.model.state_dict(), "optimizer": self.opt.state_dict(),
             "epoch": self.epoch, "history": self.history,
@@ -131,8 +133,8 @@ class Trainer:
         }
 
     def load_state(self, ckpt: dict) -> None:
-        if ckpt.get("kind") != "odmo":
-            raise UserError(f"cannot resume: checkpoint is a {ckpt.get('kind')!r} model, not odmo")
+        if ckpt.get("kind") != self.kind:
+            raise UserError(f"cannot resume: checkpoint is a {ckpt.get('kind')!r} model, not {self.kind}")
         if ckpt["dataset"] != dataset_description(self.clips):
             raise UserError(f"cannot resume: checkpoint was trained on {ckpt['dataset']['name']}, "
                             f"not {self.clips.manifest.name}")

@@ -320,6 +320,26 @@ def test_scale_bones():
         lie.scale_bones(lengths, sk, legs=-1.0)
 
 
+def test_retarget_to_another_body():
+    sk = get_skeleton("humanact12")
+    pos, lengths = _synthetic_motion(sk, batch=(), frames=4, seed=4)
+    other = lie.bone_lengths_from_pose(_synthetic_motion(sk, batch=(), frames=2, seed=9)[0], sk).mean(-2)
+    assert not torch.allclose(other, lengths)
+    moved = lie.retarget(pos, other, sk)
+    torch.testing.assert_close(lie.bone_lengths_from_pose(moved, sk), other.expand(4, -1))
+    root, w = lie.inverse_kinematics(pos, sk)
+    root_m, w_m = lie.inverse_kinematics(moved, sk)
+    torch.testing.assert_close(root_m, root)
+    torch.testing.assert_close(w_m, w, atol=1e-9, rtol=0)  # same rotations: the same movement
+    torch.testing.assert_close(lie.retarget(pos, lengths, sk), pos)
+    longer = lie.retarget(pos, lie.scale_bones(lengths, sk, legs=1.2), sk)
+    knee = sk.joint_names.index("left_knee")
+    ratio = lie.bone_lengths_from_pose(longer, sk)[:, knee] / lengths[knee]
+    torch.testing.assert_close(ratio, torch.full_like(ratio, 1.2))
+    with pytest.raises(UserError, match="bone_lengths must have shape"):
+        lie.retarget(pos, lengths[:20], sk)
+
+
 # ----------------------------------------------------------------------------- real data
 
 
