@@ -208,7 +208,7 @@ ABLATIONS = ("es", "traj", "cons", "end-point")
 def train(
     dataset: Annotated[str, typer.Option("--dataset", help="Dataset name or folder.")] = "humanact12",
     model: Annotated[str, typer.Option("--model", help="Model kind: odmo, classifier, dvgan.")] = "odmo",
-    generator: Annotated[str, typer.Option("--generator", help="DVGAN generator: cnn | rnn (rnn also completes motions).")] = "cnn",
+    generator: Annotated[Optional[str], typer.Option("--generator", help="DVGAN generator: cnn (default) | rnn (rnn also completes motions).")] = None,
     epochs: Annotated[Optional[int], typer.Option("--epochs", help="Default: 300 (odmo), 150 (classifier).")] = None,
     batch_size: Annotated[Optional[int], typer.Option("--batch-size", help="Pairs per step (odmo, default 256); clips (classifier, 64).")] = None,
     lr: Annotated[Optional[float], typer.Option("--lr", help="Default 1e-3.")] = None,
@@ -234,7 +234,9 @@ def train(
     if model == "classifier":
         return _train_classifier(dataset, data, epochs, batch_size, lr, out, seed, threads, as_json)
     if model == "dvgan":
-        return _train_dvgan(dataset, data, generator, epochs, batch_size, lr, out, resume, seed, threads, as_json)
+        return _train_dvgan(dataset, data, generator or "cnn", epochs, batch_size, lr, out, resume, seed, threads, as_json)
+    if generator is not None:
+        raise UserError(f"--generator applies to --model dvgan only, not {model!r}")
     epochs = 300 if epochs is None else epochs
     batch_size = 256 if batch_size is None else batch_size
     lr = 1e-3 if lr is None else lr

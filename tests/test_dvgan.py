@@ -305,13 +305,14 @@ def test_cli_train_sample_and_complete(tmp_path, make_motion_folder):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--generator", "transformer"], "unknown DVGAN generator 'transformer'; valid: cnn, rnn"),
-    (["--epochs", "0"], "epochs, batch size and n_critic must be positive"),
+    (["--model", "dvgan", "--generator", "transformer"], "unknown DVGAN generator 'transformer'; valid: cnn, rnn"),
+    (["--model", "dvgan", "--epochs", "0"], "epochs, batch size and n_critic must be positive"),
+    (["--model", "dvgan", "--resume", "missing.pt"], "checkpoint not found"),
+    (["--generator", "rnn"], "--generator applies to --model dvgan only, not 'odmo'"),
 ])
 def test_cli_train_dvgan_bad_input(tmp_path, args, message):
     out = tmp_path / "m.pt"
-    res = CliRunner().invoke(app, ["train", "--model", "dvgan", "--dataset", str(demo_folder("humanact12")),
-                                   "--out", str(out), *args])
+    res = CliRunner().invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--out", str(out), *args])
     assert res.exit_code == 2 and message in res.stderr and res.stderr.count("\n") == 1
     assert not out.exists()
 
