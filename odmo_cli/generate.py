@@ -376,11 +376,11 @@ def complete(loaded: "LoadedODMO | LoadedBaseline", prefix: np.ndarray, frames: 
     The prefix is moved so its first root is at the origin (the models' frame); every output
     motion (T, J, 3) starts with exactly those frames. Only DVGAN-RNN models complete.
     """
-    if not (isinstance(loaded, LoadedBaseline) and loaded.kind == "dvgan"
-            and getattr(loaded.model.cfg, "generator", None) == "rnn"):
-        what = f"a DVGAN-{loaded.model.cfg.generator.upper()}" if isinstance(loaded, LoadedBaseline) and \
-            loaded.kind == "dvgan" else ("an ODMO" if isinstance(loaded, LoadedODMO) else f"a {loaded.kind}")
-        raise UserError(f"{loaded.source} is {what} model; completion needs a DVGAN-RNN model "
+    kind = loaded.kind if isinstance(loaded, LoadedBaseline) else "odmo"
+    generator = getattr(loaded.model.cfg, "generator", "")
+    if kind != "dvgan" or generator != "rnn":
+        name = f"DVGAN-{generator.upper()}" if kind == "dvgan" else {"odmo": "ODMO"}.get(kind, kind)
+        raise UserError(f"{loaded.source} is {name}, which does not complete; completion needs a DVGAN-RNN model "
                         "(odmo train --model dvgan --generator rnn)")
     cfg = loaded.model.cfg
     if n <= 0:

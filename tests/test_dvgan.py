@@ -271,8 +271,17 @@ def test_complete_checks_the_prefix(trained):
     for prefix, frames, message in cases:
         with pytest.raises(UserError, match=message.replace("-", r"\-")):
             generate.complete(loaded, prefix, frames, ["walk"], 2)
-    with pytest.raises(UserError, match="completion needs a DVGAN-RNN model"):
+    with pytest.raises(UserError, match="is DVGAN-CNN, which does not complete; completion needs a DVGAN-RNN model"):
         generate.complete(generate.load_model(trained["cnn"][0]), good, 5, ["walk"], 2)
+
+
+def test_odmo_does_not_complete(demo_clips, tmp_path):
+    from odmo_cli.train import TrainConfig, train_odmo
+
+    tc = TrainConfig(epochs=1, batch_size=8, pairs_per_epoch=8, val_fraction=0.0, val_every=0, checkpoint_every=0)
+    path = train_odmo(demo_clips, tc, tmp_path / "odmo.pt", {"motion_hidden": 8, "traj_hidden": 8, "encoder_fc": 8}).out
+    with pytest.raises(UserError, match="is ODMO, which does not complete; completion needs a DVGAN-RNN model"):
+        generate.complete(generate.load_model(path), np.zeros((30, 24, 3), np.float32), 5, ["walk"], 2)
 
 
 def test_cli_train_sample_and_complete(tmp_path, make_motion_folder):

@@ -76,7 +76,11 @@ class DVGANConfig:
 # -- the condition ------------------------------------------------------------------------------
 
 class LanguageModel(nn.Module):
-    """Action name -> [h; c] of the top LSTM layer after the last word: (C,) names -> (B, 2*lm_hidden)."""
+    """Action name -> [h; c] of the top LSTM layer after the last word: (B,) labels -> (B, 2*lm_hidden).
+
+    Eqs. 4-6 add h_txt to k-channel features, but [h; c] has 2*lm_hidden values, so every module
+    that adds it first maps it with its own Linear (the paper does not say how the sizes meet).
+    """
 
     def __init__(self, cfg: DVGANConfig):
         super().__init__()
