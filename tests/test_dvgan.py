@@ -333,3 +333,18 @@ def test_cli_complete_refuses_a_cnn_model(trained, tmp_path):
                                    "--out", str(tmp_path / "x.npz")])
     assert res.exit_code == 2 and "completion needs a DVGAN-RNN model" in res.stderr
     assert not (tmp_path / "x.npz").exists()
+
+
+@pytest.mark.parametrize("kind, message", [("garbage", "cannot read prefix"), ("truncated", "cannot read prefix"),
+                                           ("nan", "holds NaN or infinite values"),
+                                           ("shape", r"must be a \(frames, joints, 3\) array"),
+                                           ("strings", r"must be a \(frames, joints, 3\) array")])
+def test_read_prefix_refuses_bad_files(tmp_path, spoil_clip, kind, message):
+    path = tmp_path / "p.npy"
+    np.save(path, np.zeros((10, 24, 3), dtype=np.float32))
+    assert generate.read_prefix(path).shape == (10, 24, 3)
+    spoil_clip(path, kind)
+    with pytest.raises(UserError, match=message):
+        generate.read_prefix(path)
+    with pytest.raises(UserError, match="prefix not found"):
+        generate.read_prefix(tmp_path / "missing.npy")
