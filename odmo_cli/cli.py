@@ -229,11 +229,12 @@ ABLATIONS = ("es", "traj", "cons", "end-point")
 @app.command("train")
 def train(
     dataset: Annotated[str, typer.Option("--dataset", help="Dataset name or folder.")] = "humanact12",
-    model: Annotated[str, typer.Option("--model", help="Model kind: odmo, classifier, a2m.")] = "odmo",
+    model: Annotated[str, typer.Option("--model", help="Model kind: odmo, classifier, a2m, dvgan.")] = "odmo",
     representation: Annotated[Optional[str], typer.Option("--representation", help="a2m output: lie (default) | xyz.")] = None,
-    epochs: Annotated[Optional[int], typer.Option("--epochs", help="Default: 300 (odmo), 150 (classifier), 500 (a2m).")] = None,
-    batch_size: Annotated[Optional[int], typer.Option("--batch-size", help="Pairs per step (odmo, default 256); clips (classifier, 64; a2m, 128).")] = None,
-    lr: Annotated[Optional[float], typer.Option("--lr", help="Default 1e-3 (a2m: 2e-4).")] = None,
+    generator: Annotated[Optional[str], typer.Option("--generator", help="DVGAN generator: cnn (default) | rnn (rnn also completes motions).")] = None,
+    epochs: Annotated[Optional[int], typer.Option("--epochs", help="Default: 300 (odmo), 150 (classifier), 500 (a2m), the paper's schedule (dvgan).")] = None,
+    batch_size: Annotated[Optional[int], typer.Option("--batch-size", help="Pairs per step (odmo, default 256); clips (classifier, 64; a2m, 128; dvgan, 64).")] = None,
+    lr: Annotated[Optional[float], typer.Option("--lr", help="Default 1e-3 (a2m: 2e-4, dvgan: 1e-4).")] = None,
     lr_final: Annotated[Optional[float], typer.Option("--lr-final", help="Cosine-decay target (default: constant lr).")] = None,
     tf_epochs: Annotated[int, typer.Option("--tf-epochs", help="Teacher forcing decays 1 -> 0.3 over these epochs (0: all).")] = 0,
     ablate: Annotated[Optional[list[str]], typer.Option("--ablate", help="Drop a part: es, traj, cons, end-point (repeatable).")] = None,
@@ -251,6 +252,8 @@ def train(
     from odmo_cli.train import TrainConfig, train_odmo
 
     out = out or Path(f"{model}.pt")
+    if generator is not None and model != "dvgan":
+        raise UserError(f"--generator applies to --model dvgan only, not {model!r}")
     if model == "classifier":
         return _train_classifier(dataset, data, epochs, batch_size, lr, out, seed, threads, as_json)
     if model == "a2m":
@@ -264,11 +267,13 @@ def train(
         return _train_a2m(dataset, data, representation, given, out, resume, as_json)
     if representation is not None:
         raise UserError("--representation applies to --model a2m only")
+    if model == "dvgan":
+        return _train_dvgan(dataset, data, generator or "cnn", epochs, batch_size, lr, out, resume, seed, threads, as_json)
     epochs = 300 if epochs is None else epochs
     batch_size = 256 if batch_size is None else batch_size
     lr = 1e-3 if lr is None else lr
     if model != "odmo":
-        raise UserError(f"unknown model {model!r}; valid: odmo, classifier, a2m")
+        raise UserError(f"unknown model {model!r}; valid: odmo, classifier, a2m, dvgan")
     if device != "cpu":
         raise UserError(f"device {device!r} is not supported; valid: cpu")
     if same_class is not None and not (0 <= same_class <= 1 or same_class == -1):
@@ -410,6 +415,51 @@ def _train_a2m(dataset, data, representation, given: dict, out, resume, as_json)
                   f"KL {r['held_out_kl']:.4g} (lambda {r['lambda_kl']:g})")
 
 
+def _train_dvgan(dataset, data, generator, epochs, batch_size, lr, out, resume, seed, threads, as_json) -> None:
+    """DVGAN (CNN or RNN generator) with WGAN-GP; defaults are the paper's (see train_dvgan)."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from odmo_cli.data.readers import read_dataset
+    from odmo_cli.models.dvgan import GENERATORS
+    from odmo_cli.train_dvgan import DVGANTrainConfig, train_dvgan
+
+    if generator not in GENERATORS:
+        raise UserError(f"unknown DVGAN generator {generator!r}; valid: {', '.join(GENERATORS)}")
+    given = {"epochs": epochs, "batch_size": batch_size, "lr": lr}
+    tc = DVGANTrainConfig.from_dict({"seed": seed, "threads": threads,
+                                     **{k: v for k, v in given.items() if v is not None}})
+    manifest, root = _resolve(dataset, data)
+    clips = read_dataset(root, manifest)
+    bar = Progress(TextColumn("epoch"), MofNCompleteColumn(), BarColumn(), TimeRemainingColumn(),
+                   TextColumn("{task.fields[info]}"), console=err_console, disable=as_json)
+    task = bar.add_task("train", total=tc.epochs, info="")
+
+    def show(log: dict) -> None:
+        info = " ".join(f"{k} {log[k]:.3g}" for k in ("d_loss", "wasserstein", "g_loss") if k in log)
+        if not err_console.is_terminal:  # a log file gets a line every 25 epochs instead of a bar
+            if (log["epoch"] % 25 == 0 or log["epoch"] == tc.epochs) and not as_json:
+                err_console.print(f"epoch {log['epoch']}/{tc.epochs} {info}", highlight=False)
+            return
+        bar.start()
+        bar.update(task, completed=log["epoch"], info=info)
+
+    try:
+        result = train_dvgan(clips, tc, out, generator, resume=resume, progress=show)
+    except KeyboardInterrupt:
+        if bar.live.is_started:
+            bar.stop()
+        err_console.print(f"interrupted: the last completed epoch is saved in {out}")
+        raise typer.Exit(130) from None
+    finally:
+        if bar.live.is_started:
+            bar.stop()
+    if as_json:
+        return _print_json({"out": str(result.out), "epochs": result.epochs, "report": result.report})
+    r = result.report
+    console.print(f"wrote {result.out}: DVGAN-{r['generator'].upper()} after {result.epochs} epochs "
+                  f"({r['generator_steps']} generator steps)")
+
+
 @app.command("info")
 def info(checkpoint: Annotated[Path, typer.Argument(help="A checkpoint (.pt).")], as_json: JsonOpt = False):
     """What a checkpoint holds: model kind, configs, dataset, epochs, final report."""
@@ -538,6 +588,24 @@ def render_cmd(
     if notice:
         err_console.print(notice, highlight=False, markup=False)
     console.print(f"wrote {written}", highlight=False)
+
+
+@app.command("complete")
+def complete_cmd(
+    prefix: Annotated[Path, typer.Option("--prefix", help="A (frames, joints, 3) .npy motion of the model's skeleton.")],
+    model: Annotated[str, typer.Option("--model", help="A DVGAN-RNN checkpoint (the models that complete).")],
+    frames: Annotated[int, typer.Option("--frames", help="How many of the prefix's first frames to keep.")] = 20,
+    action: Annotated[list[str], typer.Option("--action", help="Action name (repeatable), or all.")] = ["all"],
+    n: Annotated[int, typer.Option("--n", help="Completions per action.")] = 5,
+    out: OutOpt = Path("completed.npz"),
+    seed: SeedOpt = 0, as_json: JsonOpt = False,
+):
+    """Continue the first --frames frames of a motion to the model's length (DVGAN-RNN)."""
+    from odmo_cli.generate import complete, load_model, read_prefix
+
+    batch = complete(load_model(model), read_prefix(prefix), frames, action, n, seed)
+    batch.save(out)
+    _summary(batch, out, as_json, {"prefix_frames": frames})
 
 
 def _floats(text: str, flag: str) -> list[float]:

@@ -350,3 +350,55 @@ def refit_modes(loaded: LoadedODMO, seed: int = 0) -> None:
     ckpt = load_checkpoint(loaded.source)
     ckpt["modes"] = loaded.modes
     save_checkpoint(loaded.source, ckpt)
+
+
+def read_prefix(path: str | Path) -> np.ndarray:
+    """A (T0, J, 3) motion from a .npy file, float32; UserError when it is not one."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"prefix not found: {path}")
+    try:
+        motion = np.load(path, allow_pickle=False)
+    except Exception as exc:  # numpy raises several types for files that are not arrays
+        raise UserError(f"cannot read prefix {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+    if motion.ndim != 3 or motion.shape[2] != 3 or not np.issubdtype(motion.dtype, np.number):
+        raise UserError(f"prefix {path} must be a (frames, joints, 3) array of numbers, got shape {motion.shape}")
+    if not np.all(np.isfinite(motion)):
+        raise UserError(f"prefix {path} holds NaN or infinite values")
+    return motion.astype(np.float32)
+
+
+@torch.inference_mode()
+def complete(loaded: "LoadedODMO | LoadedBaseline", prefix: np.ndarray, frames: int, actions: list[str],
+             n: int, seed: int = 0) -> MotionBatch:
+    """n continuations per action of the first `frames` frames of `prefix` (T0, J, 3).
+
+    The prefix is moved so its first root is at the origin (the models' frame); every output
+    motion (T, J, 3) starts with exactly those frames. Only DVGAN-RNN models complete.
+    """
+    kind = loaded.kind if isinstance(loaded, LoadedBaseline) else "odmo"
+    generator = getattr(loaded.model.cfg, "generator", "")
+    if kind != "dvgan" or generator != "rnn":
+        name = f"DVGAN-{generator.upper()}" if kind == "dvgan" else {"odmo": "ODMO"}.get(kind, kind)
+        raise UserError(f"{loaded.source} is {name}, which does not complete; completion needs a DVGAN-RNN model "
+                        "(odmo train --model dvgan --generator rnn)")
+    cfg = loaded.model.cfg
+    if n <= 0:
+        raise UserError(f"--n must be a positive number of motions, got {n}")
+    if not 1 <= frames < cfg.length:
+        raise UserError(f"--frames must be between 1 and {cfg.length - 1} (the model makes {cfg.length} frames), got {frames}")
+    if prefix.shape[1] != cfg.n_joints:
+        raise UserError(f"the prefix has {prefix.shape[1]} joints; the model's skeleton "
+                        f"{loaded.dataset['skeleton']} has {cfg.n_joints}")
+    if len(prefix) < frames:
+        raise UserError(f"the prefix has {len(prefix)} frames; --frames {frames} needs at least {frames}")
+    given = prefix[:frames] - prefix[:1, :1]  # (frames, J, 3), first root at the origin
+    idx = list(range(len(loaded.actions))) if actions == ["all"] else [loaded.action_index(a) for a in actions]
+    labels = np.repeat(np.asarray(idx, dtype=np.int64), n)  # (N,)
+    gen = torch.Generator().manual_seed(seed)
+    start = torch.from_numpy(given)[None].expand(len(labels), -1, -1, -1)  # (N, frames, J, 3)
+    motions = loaded.model.complete(start, torch.from_numpy(labels), gen).numpy()
+    return MotionBatch(motions, np.array(loaded.actions)[labels], np.full(len(labels), -1),
+                       np.zeros((len(labels), 0), dtype=np.float32), np.full((len(labels), 3), np.nan, np.float32),
+                       loaded.dataset, loaded.source, seed, extra={"prefix_frames": np.int64(frames)},
+                       labels=labels, loaded=loaded)
