@@ -288,12 +288,8 @@ def train(
                      seed=seed, threads=threads, same_class_fraction=0.5 if same_class is None else same_class)
     manifest, root = _resolve(dataset, data)
     clips = read_dataset(root, manifest)
-    with _epoch_bar(epochs, as_json) as show:
-        try:
-            result = train_odmo(clips, tc, out, overrides, resume, show)
-        except KeyboardInterrupt:
-            err_console.print(f"interrupted: the last completed epoch is saved in {out}")
-            raise typer.Exit(130) from None
+    with _epoch_bar(epochs, as_json) as update, _interruptible(f"the last completed epoch is saved in {out}"):
+        result = train_odmo(clips, tc, out, overrides, resume, _epoch_log_progress(update))
     if as_json:
         return _print_json({"out": str(result.out), "epochs": result.epochs, "report": result.report})
     r = result.report
@@ -306,31 +302,47 @@ def train(
 
 
 @contextmanager
-def _epoch_bar(epochs: int, quiet: bool):
-    """A progress callback for ODMO training: a rich bar on a terminal, a line per validation in a log."""
+def _interruptible(kept: str):
+    """Ctrl-C during training: say what was kept, exit 130 without a traceback."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        err_console.print(f"interrupted: {kept}")
+        raise typer.Exit(130) from None
+
+
+@contextmanager
+def _epoch_bar(total: int, quiet: bool):
+    """Yields update(epoch, info, line): a rich bar on a terminal; in a log file, one line per `line`."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     # the bar starts with the first finished epoch, so an early error prints only its one line
     bar = Progress(TextColumn("epoch"), MofNCompleteColumn(), BarColumn(), TimeRemainingColumn(),
                    TextColumn("{task.fields[info]}"), console=err_console, disable=quiet)
-    task = bar.add_task("train", total=epochs, info="")
+    task = bar.add_task("train", total=total, info="")
 
-    def show(log) -> None:
-        info = " ".join(f"{k} {v:.3g}" for k, v in log.terms.items() if k != "vae")
-        info += "".join(f" | val {k} {v:.3g}" for k, v in log.val.items())
-        info += f" | {log.clips_per_s:.0f} clips/s"
+    def update(epoch: int, info: str, line: bool) -> None:
         if not err_console.is_terminal:
-            if log.val and not quiet:
-                err_console.print(f"epoch {log.epoch}/{epochs} {info}", highlight=False)
+            if line and not quiet:
+                err_console.print(f"epoch {epoch}/{total} {info}", highlight=False)
             return
         bar.start()
-        bar.update(task, completed=log.epoch, info=info)
+        bar.update(task, completed=epoch, info=info)
 
     try:
-        yield show
+        yield update
     finally:
         if bar.live.is_started:
             bar.stop()
+
+
+def _epoch_log_progress(update):
+    """ODMO's and A2M's EpochLog -> the bar: every loss term, validation, throughput."""
+    def show(log) -> None:
+        info = " ".join(f"{k} {v:.3g}" for k, v in log.terms.items() if k != "vae")
+        info += "".join(f" | val {k} {v:.3g}" for k, v in log.val.items())
+        update(log.epoch, info + f" | {log.clips_per_s:.0f} clips/s", bool(log.val))
+    return show
 
 
 def _train_classifier(dataset, data, epochs, batch_size, lr, out, seed, threads, as_json) -> None:
@@ -369,13 +381,10 @@ def ship_cmd(
     """Rebuild the shipped models of a dataset from scratch with its recipe (see odmo_cli/ship.py)."""
     from odmo_cli.ship import RECIPES, build, recipe_name
 
-    with _epoch_bar(RECIPES[recipe_name(dataset)]["odmo"]["epochs"], as_json) as show:
-        try:
-            reports = build(dataset, data, out, seed, skip_classifier, show,
-                            say=lambda m: None if as_json else err_console.print(m, highlight=False))
-        except KeyboardInterrupt:
-            err_console.print("interrupted: run the same command again to continue the ODMO training")
-            raise typer.Exit(130) from None
+    with (_epoch_bar(RECIPES[recipe_name(dataset)]["odmo"]["epochs"], as_json) as update,
+          _interruptible("run the same command again to continue the ODMO training")):
+        reports = build(dataset, data, out, seed, skip_classifier, _epoch_log_progress(update),
+                        say=lambda m: None if as_json else err_console.print(m, highlight=False))
     if as_json:
         return _print_json(reports)
     if "classifier" in reports:
@@ -397,16 +406,8 @@ def _train_a2m(dataset, data, representation, given: dict, out, resume, as_json)
     manifest, root = _resolve(dataset, data)
     clips = read_dataset(root, manifest)
 
-    def show(log) -> None:
-        if not as_json and (log.epoch % 10 == 0 or log.epoch == tc.epochs or log.val):
-            info = " ".join(f"{k} {v:.4g}" for k, v in {**log.terms, **{f"val {k}": v for k, v in log.val.items()}}.items())
-            err_console.print(f"epoch {log.epoch}/{tc.epochs} {info} | {log.clips_per_s:.0f} clips/s", highlight=False)
-
-    try:
-        result = train_a2m(clips, tc, out, representation, resume, show)
-    except KeyboardInterrupt:
-        err_console.print(f"interrupted: the last completed epoch is saved in {out}")
-        raise typer.Exit(130) from None
+    with _epoch_bar(tc.epochs, as_json) as update, _interruptible(f"the last completed epoch is saved in {out}"):
+        result = train_a2m(clips, tc, out, representation, resume, _epoch_log_progress(update))
     if as_json:
         return _print_json({"out": str(result.out), "epochs": result.epochs, "report": result.report})
     r = result.report
@@ -417,8 +418,6 @@ def _train_a2m(dataset, data, representation, given: dict, out, resume, as_json)
 
 def _train_dvgan(dataset, data, generator, epochs, batch_size, lr, out, resume, seed, threads, as_json) -> None:
     """DVGAN (CNN or RNN generator) with WGAN-GP; defaults are the paper's (see train_dvgan)."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
     from odmo_cli.data.readers import read_dataset
     from odmo_cli.models.dvgan import GENERATORS
     from odmo_cli.train_dvgan import DVGANTrainConfig, train_dvgan
@@ -430,29 +429,15 @@ def _train_dvgan(dataset, data, generator, epochs, batch_size, lr, out, resume, 
                                      **{k: v for k, v in given.items() if v is not None}})
     manifest, root = _resolve(dataset, data)
     clips = read_dataset(root, manifest)
-    bar = Progress(TextColumn("epoch"), MofNCompleteColumn(), BarColumn(), TimeRemainingColumn(),
-                   TextColumn("{task.fields[info]}"), console=err_console, disable=as_json)
-    task = bar.add_task("train", total=tc.epochs, info="")
 
-    def show(log: dict) -> None:
-        info = " ".join(f"{k} {log[k]:.3g}" for k in ("d_loss", "wasserstein", "g_loss") if k in log)
-        if not err_console.is_terminal:  # a log file gets a line every 25 epochs instead of a bar
-            if (log["epoch"] % 25 == 0 or log["epoch"] == tc.epochs) and not as_json:
-                err_console.print(f"epoch {log['epoch']}/{tc.epochs} {info}", highlight=False)
-            return
-        bar.start()
-        bar.update(task, completed=log["epoch"], info=info)
+    def show(update):
+        def progress(log: dict) -> None:
+            info = " ".join(f"{k} {log[k]:.3g}" for k in ("d_loss", "wasserstein", "g_loss") if k in log)
+            update(log["epoch"], info, log["epoch"] % 25 == 0 or log["epoch"] == tc.epochs)
+        return progress
 
-    try:
-        result = train_dvgan(clips, tc, out, generator, resume=resume, progress=show)
-    except KeyboardInterrupt:
-        if bar.live.is_started:
-            bar.stop()
-        err_console.print(f"interrupted: the last completed epoch is saved in {out}")
-        raise typer.Exit(130) from None
-    finally:
-        if bar.live.is_started:
-            bar.stop()
+    with _epoch_bar(tc.epochs, as_json) as update, _interruptible(f"the last completed epoch is saved in {out}"):
+        result = train_dvgan(clips, tc, out, generator, resume=resume, progress=show(update))
     if as_json:
         return _print_json({"out": str(result.out), "epochs": result.epochs, "report": result.report})
     r = result.report
