@@ -1,0 +1,101 @@
+"""`odmo eval` (alias `evaluate`) and `odmo bench`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.table import Table
+
+from odmo_cli.cli.common import DataOpt, ModelOpt, SeedOpt, app, console, err_console
+from odmo_cli.errors import UserError
+
+
+METRIC_HEADS = {"accuracy": "Acc ↑", "fid": "FID ↓", "diversity": "Diversity →", "multimodality": "MModality →",
+                "inception": "IS ↑", "n_apd": "n-APD", "bone_std": "bone std ↓"}
+
+
+def evaluate(
+    model: Annotated[Optional[str], typer.Option("--model", help="Checkpoint or shipped name (default humanact12).")] = None,
+    compare: Annotated[Optional[list[str]], typer.Option("--compare", help="More checkpoints for the same table.")] = None,
+    dataset: Annotated[Optional[str], typer.Option("--dataset", help="Dataset (default: the model's).")] = None,
+    classifier: Annotated[Optional[str], typer.Option("--classifier", help="Classifier checkpoint or Action2Motion .tar.")] = None,
+    repeats: Annotated[int, typer.Option("--repeats")] = 10,
+    per_action: Annotated[int, typer.Option("--per-action", help="Samples per action (0: the paper's).")] = 0,
+    sampling: Annotated[str, typer.Option("--sampling", help="mode-preserving | conventional")] = "mode-preserving",
+    samples: Annotated[Optional[list[Path]], typer.Option("--samples", help="Evaluate a samples .npz made elsewhere.")] = None,
+    customization: Annotated[bool, typer.Option("--customization", help="Also the end-point protocol (§4.4).")] = False,
+    json_out: Annotated[Optional[Path], typer.Option("--json", help="Write the full report as JSON here.")] = None,
+    data: DataOpt = None, seed: SeedOpt = 0,
+):
+    """The evaluation protocol: Acc, FID, Diversity, Multimodality, n-APD, bone std (mean ± 95% CI)."""
+    from odmo_cli.evaluate import EvalConfig, run_evaluation
+    from odmo_cli.io import atomic_path
+
+    cfg = EvalConfig(repeats=repeats, per_action=per_action, sampling=sampling, seed=seed)
+    models = ([model] if model or not samples else []) + list(compare or [])
+    with err_console.status("evaluating ..."):
+        report = run_evaluation(models, dataset, data, classifier, cfg, list(samples or []), customization)
+    table = Table(title=f"{report.dataset}: {report.config['repeats']} repeats x {report.config['per_action']} "
+                        f"per action, classifier {Path(report.classifier).name} ({report.seconds:.0f} s)")
+    table.add_column("model")
+    for key in METRIC_HEADS:
+        table.add_column(METRIC_HEADS[key], justify="right")
+    for row in report.rows:
+        table.add_row(row["name"], *(f"{row['metrics'][k][0]:.{3 if k in ('fid', 'bone_std') else 2}f}"
+                                     f" ±{row['metrics'][k][1]:.2f}" for k in METRIC_HEADS))
+    console.print(table)
+    for c in report.customization:
+        m = c["metrics"]
+        console.print(f"customization {c['name']}: Acc {m['accuracy'][0]:.2f} ±{m['accuracy'][1]:.2f}, "
+                      f"dist_e {m['dist_e'][0]:.4f} ±{m['dist_e'][1]:.4f}")
+    if json_out is not None:
+        import json
+
+        with atomic_path(json_out) as tmp:
+            tmp.write_text(json.dumps(report.__dict__, indent=2, default=str))
+        console.print(f"wrote {json_out}")
+
+
+app.command("evaluate")(evaluate)
+app.command("eval", help="Alias of evaluate.")(evaluate)
+
+
+BENCH_PARTS = ("sampling", "end-to-end", "training", "evaluation")
+
+
+@app.command("bench")
+def bench(
+    model: ModelOpt = None, data: DataOpt = None,
+    runs: Annotated[int, typer.Option("--runs", help="Runs per figure (median reported).")] = 5,
+    only: Annotated[Optional[list[str]], typer.Option("--only", help="sampling, end-to-end, training, evaluation")] = None,
+    json_out: Annotated[Optional[Path], typer.Option("--json", help="Also write the figures as JSON here.")] = None,
+):
+    """Speed and memory on this machine (median, min and max of several runs)."""
+    from odmo_cli.bench import run_bench
+    from odmo_cli.io import atomic_path
+
+    bad = [p for p in only or [] if p not in BENCH_PARTS]
+    if bad:
+        raise UserError(f"unknown benchmark part {bad[0]!r}; valid: {', '.join(BENCH_PARTS)}")
+    if runs <= 0:
+        raise UserError(f"--runs must be positive, got {runs}")
+    with err_console.status("benchmarking ...") as status:
+        report = run_bench(model, data, runs, tuple(only or ()), lambda part: status.update(f"benchmarking {part} ..."))
+    m = report.machine
+    table = Table(title=f"odmo bench: {m['cpu']}, {m['cores']} cores, torch {m['torch']} ({m['threads']} threads)")
+    for col in ("figure", "median", "min", "max", "unit", "runs", "note"):
+        table.add_column(col, justify="right" if col in ("median", "min", "max", "runs") else "left")
+    for f in report.figures:
+        j = f.to_json()
+        table.add_row(f.name, f"{j['median']:.3g}", f"{j['min']:.3g}", f"{j['max']:.3g}", f.unit, str(j["runs"]), f.note)
+    console.print(table)
+    for s in report.skipped:
+        console.print(f"skipped {s}", highlight=False)
+    if json_out is not None:
+        import json
+
+        with atomic_path(json_out) as tmp:
+            tmp.write_text(json.dumps({"machine": m, "figures": [f.to_json() for f in report.figures],
+                                       "skipped": report.skipped}, indent=2))

@@ -1,0 +1,247 @@
+"""Generation commands: info, sample, export, render, complete, interpolate, modes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.table import Table
+
+from odmo_cli.cli.common import (EndOpt, JsonOpt, ModelOpt, OutOpt, SeedOpt, print_json, app, console, err_console)
+from odmo_cli.errors import UserError
+
+
+@app.command("info")
+def info(checkpoint: Annotated[Path, typer.Argument(help="A checkpoint (.pt).")], as_json: JsonOpt = False):
+    """What a checkpoint holds: model kind, configs, dataset, epochs, final report."""
+    from odmo_cli.io import describe_checkpoint
+
+    desc = describe_checkpoint(checkpoint)
+    if as_json:
+        return print_json(desc)
+    for key, value in desc.items():
+        if isinstance(value, dict):
+            console.print(f"[bold]{key}[/bold]")
+            for k, v in value.items():
+                console.print(f"  {k}: {v}", highlight=False)
+        else:
+            console.print(f"[bold]{key}[/bold]: {value}", highlight=False)
+
+
+def _summary(batch, out: Path, as_json: bool, extra: dict | None = None) -> None:
+    import numpy as np
+
+    per_action = {}
+    for a, m in zip(batch.actions, batch.modes):
+        per_action.setdefault(str(a), {}).setdefault(int(m), 0)
+        per_action[str(a)][int(m)] += 1
+    payload = {"out": str(out), "motions": len(batch), "model": batch.model, "seed": batch.seed,
+               "frames": int(batch.loaded.model.cfg.length), "actions": per_action, "dist_e": batch.dist_e(), **(extra or {})}
+    if as_json:
+        return print_json(payload)
+    table = Table(title=f"{len(batch)} motions -> {out}")
+    table.add_column("action")
+    table.add_column("motions", justify="right")
+    table.add_column("modes used (mode: count)")
+    for a, counts in per_action.items():
+        table.add_row(a, str(sum(counts.values())), ", ".join(
+            f"n/a: {v}" if k < 0 else f"{k}: {v}" for k, v in sorted(counts.items())))
+    console.print(table)
+    if payload["dist_e"] is not None:
+        reach = np.sqrt(np.mean(np.sum((batch.end_points - batch.reached) ** 2, axis=1)))
+        console.print(f"dist_e (mean squared end-point error) {payload['dist_e']:.4f}; RMS distance {reach:.3f}")
+    console.print(f"model {batch.model}, seed {batch.seed}, {batch.dataset['fps']:g} fps, skeleton {batch.dataset['skeleton']}")
+
+
+@app.command("sample")
+def sample_cmd(
+    action: Annotated[list[str], typer.Option("--action", help="Action name (repeatable), or all.")],
+    n: Annotated[int, typer.Option("--n", help="Motions per action (per end point).")] = 20,
+    out: OutOpt = Path("samples.npz"),
+    model: ModelOpt = None,
+    mode: Annotated[Optional[int], typer.Option("--mode", help="Sample only this discovered mode.")] = None,
+    mode_weights: Annotated[Optional[str], typer.Option("--mode-weights", help="Weights per mode, e.g. 0.2,0.8.")] = None,
+    sampling: Annotated[str, typer.Option("--sampling", help="mode-preserving | conventional")] = "mode-preserving",
+    end: EndOpt = None,
+    end_from: Annotated[Optional[str], typer.Option("--end-from", help="First end point of a segment.")] = None,
+    end_to: Annotated[Optional[str], typer.Option("--end-to", help="Last end point of a segment.")] = None,
+    steps: Annotated[int, typer.Option("--steps", help="End points on the --end-from/--end-to segment.")] = 10,
+    gif: Annotated[Optional[Path], typer.Option("--gif", help="Also render the first motions to a GIF.")] = None,
+    bvh: Annotated[Optional[Path], typer.Option("--bvh", help="Also write one BVH file per motion into this folder.")] = None,
+    seed: SeedOpt = 0, as_json: JsonOpt = False,
+):
+    """Generate motions of the given actions (npz as in DESIGN.md)."""
+    from odmo_cli.generate import load_model, sample
+
+    if mode is not None and mode_weights is not None:
+        raise UserError("give either --mode or --mode-weights, not both")
+    weights = _floats(mode_weights, "--mode-weights") if mode_weights is not None else None
+    loaded = load_model(model)
+    batch = sample(loaded, action, n, seed, mode, weights, sampling, end, end_from, end_to, steps, lazy=True)
+    batch.save(out)  # decodes batch by batch while writing: memory stays flat in n
+    if gif is not None:
+        from odmo_cli.skeletons import get_skeleton
+        from odmo_cli.viz import animate
+
+        k = min(len(batch), 8)
+        _, notice = animate(batch.head(k), get_skeleton(batch.dataset["skeleton"]), gif, fps=batch.dataset["fps"],
+                            titles=[f"{a} #{i}" for i, a in enumerate(batch.actions[:k])], end_points=batch.end_points[:k])
+        if notice:
+            err_console.print(notice, highlight=False, markup=False)
+    extra = None
+    if bvh is not None:
+        from odmo_cli.bvh import export_samples
+
+        report = export_samples(out, bvh)  # from the file just written: the batch is not kept decoded
+        extra = {"bvh": str(bvh), "bvh_files": len(report.files), "bvh_max_error_mm": report.max_error_mm,
+                 "bvh_mean_error_mm": report.mean_error_mm,
+                 "bone_stretch_mm": report.max_stretch_mm}
+    _summary(batch, out, as_json, extra)
+    if bvh is not None and not as_json:
+        _bvh_note(report, bvh)
+
+
+def _bvh_note(report, folder: Path) -> None:
+    console.print(f"wrote {len(report.files)} BVH files to {folder}: joint positions within "
+                  f"{report.max_error_mm:.2f} mm (mean {report.mean_error_mm:.2f} mm) of the motions (bones stretch by up to "
+                  f"{report.max_stretch_mm:.2f} mm; a BVH keeps each bone's mean length)", highlight=False)
+
+
+@app.command("export")
+def export_cmd(
+    samples: Annotated[Path, typer.Argument(help="A samples file (.npz) from odmo sample/interpolate.")],
+    bvh: Annotated[Path, typer.Option("--bvh", help="Folder for the BVH files (one per motion).")],
+    as_json: JsonOpt = False,
+):
+    """Write every motion of a samples file as a BVH file (y-up, metres, the model's fps)."""
+    from odmo_cli.bvh import export_samples
+
+    report = export_samples(samples, bvh)
+    if as_json:
+        return print_json({"bvh": str(bvh), "files": [str(f) for f in report.files],
+                            "max_error_mm": report.max_error_mm,
+                            "mean_error_mm": report.mean_error_mm, "bone_stretch_mm": report.max_stretch_mm})
+    _bvh_note(report, bvh)
+
+
+@app.command("render")
+def render_cmd(
+    samples: Annotated[Path, typer.Argument(help="A samples file (.npz).")],
+    out: Annotated[Path, typer.Option("--out", help="Animation to write: .gif or .mp4 (.png: one still).")],
+    index: Annotated[Optional[int], typer.Option("--index", help="Render only this motion (default 0).")] = None,
+    grid: Annotated[Optional[str], typer.Option("--grid", help="ROWSxCOLS of the first motions, e.g. 4x5.")] = None,
+    trail: Annotated[bool, typer.Option("--trail", help="Draw the paths of the root, hands and feet so far.")] = False,
+):
+    """3-D stick-figure animation with ground plane, root trajectory and asked end point."""
+    from odmo_cli.viz import render_samples
+
+    written, notice = render_samples(samples, out, index, grid, trail)
+    if notice:
+        err_console.print(notice, highlight=False, markup=False)
+    console.print(f"wrote {written}", highlight=False)
+
+
+@app.command("complete")
+def complete_cmd(
+    prefix: Annotated[Path, typer.Option("--prefix", help="A (frames, joints, 3) .npy motion of the model's skeleton.")],
+    model: Annotated[str, typer.Option("--model", help="A DVGAN-RNN checkpoint (the models that complete).")],
+    frames: Annotated[int, typer.Option("--frames", help="How many of the prefix's first frames to keep.")] = 20,
+    action: Annotated[list[str], typer.Option("--action", help="Action name (repeatable), or all.")] = ["all"],
+    n: Annotated[int, typer.Option("--n", help="Completions per action.")] = 5,
+    out: OutOpt = Path("completed.npz"),
+    seed: SeedOpt = 0, as_json: JsonOpt = False,
+):
+    """Continue the first --frames frames of a motion to the model's length (DVGAN-RNN)."""
+    from odmo_cli.generate import complete, load_model, read_prefix
+
+    batch = complete(load_model(model), read_prefix(prefix), frames, action, n, seed)
+    batch.save(out)
+    _summary(batch, out, as_json, {"prefix_frames": frames})
+
+
+def _floats(text: str, flag: str) -> list[float]:
+    try:
+        return [float(v) for v in text.split(",")]
+    except ValueError:
+        raise UserError(f"{flag} must be comma-separated numbers, got {text!r}") from None
+
+
+@app.command("interpolate")
+def interpolate_cmd(
+    action: Annotated[str, typer.Option("--action", help="Action name.")],
+    from_mode: Annotated[Optional[int], typer.Option("--from-mode")] = None,
+    to_mode: Annotated[Optional[int], typer.Option("--to-mode")] = None,
+    from_code: Annotated[Optional[int], typer.Option("--from-code", help="Index into the latent bank.")] = None,
+    to_code: Annotated[Optional[int], typer.Option("--to-code", help="Index into the latent bank.")] = None,
+    steps: Annotated[int, typer.Option("--steps")] = 8,
+    end: EndOpt = None, out: OutOpt = Path("interpolation.npz"), model: ModelOpt = None,
+    seed: SeedOpt = 0, as_json: JsonOpt = False,
+):
+    """Blend two modes (or two codes) of an action: one motion per step on the line between them."""
+    from odmo_cli.generate import interpolate, load_odmo
+
+    batch = interpolate(load_odmo(model), action, steps, from_mode, to_mode, from_code, to_code, end, seed)
+    batch.save(out)
+    _summary(batch, out, as_json)
+
+
+@app.command("modes")
+def modes_cmd(
+    model: Annotated[Optional[str], typer.Argument(help="Checkpoint path or shipped name (default humanact12).")] = None,
+    refit: Annotated[bool, typer.Option("--refit", help="Refit the mixtures and save them into the checkpoint.")] = False,
+    plot: Annotated[Optional[Path], typer.Option("--plot", help="Write a 2-D plot of the codes (.png).")] = None,
+    projection: Annotated[str, typer.Option("--projection", help="pca | tsne")] = "pca",
+    colour: Annotated[str, typer.Option("--colour", help="action | mode")] = "action",
+    action: Annotated[Optional[str], typer.Option("--action", help="Plot only this action.")] = None,
+    seed: SeedOpt = 0, as_json: JsonOpt = False,
+):
+    """Discovered modes per action: counts, silhouettes, agreement with ground-truth modes."""
+    from odmo_cli.latent import mode_report
+
+    from odmo_cli.generate import load_odmo, refit_modes
+
+    if colour not in ("action", "mode"):
+        raise UserError(f"unknown --colour {colour!r}; valid: action, mode")
+    loaded = load_odmo(model)
+    if refit:
+        refit_modes(loaded, seed)
+    rows = mode_report(loaded.bank, loaded.modes, loaded.actions)
+    if plot is not None:
+        _plot_modes(loaded, plot, projection, colour, action, seed)
+    if as_json:
+        return print_json({"model": loaded.source, "actions": rows, "plot": str(plot) if plot else None})
+    table = Table(title=f"modes of {loaded.source}")
+    for col in ("action", "clips", "modes", "members", "silhouette by k", "true modes", "ARI"):
+        table.add_column(col)
+    for r in rows:
+        sil = " ".join(f"{k}:{v:.2f}" for k, v in r["silhouettes"].items()) or r["note"]
+        table.add_row(r["action"], str(r["clips"]), str(r["modes"]), " ".join(map(str, r["members"])), sil,
+                      "-" if r["true_modes"] is None else str(r["true_modes"]),
+                      "-" if r["ari"] is None else f"{r['ari']:.2f}")
+    console.print(table)
+    if plot is not None:
+        console.print(f"wrote {plot}")
+
+
+def _plot_modes(loaded, plot: Path, projection: str, colour: str, action: Optional[str], seed: int) -> None:
+    import numpy as np
+
+    from odmo_cli.latent import ActionModes, assign
+    from odmo_cli.viz import latent_plot
+
+    codes, labels = loaded.bank["codes"].numpy(), loaded.bank["labels"].numpy()
+    chosen = [loaded.action_index(action)] if action else list(range(len(loaded.actions)))
+    sel = np.isin(labels, chosen)
+    groups, names, gaussians = np.zeros(len(codes), dtype=int), [], []
+    if colour == "action":
+        groups, names = labels, loaded.actions
+    for a in chosen:
+        m = ActionModes.from_plain(loaded.modes["actions"][a])
+        gaussians += list(zip(m.means, m.covariances))
+        if colour == "mode":
+            own = labels == a
+            groups[own] = len(names) + assign(m, codes[own].astype(np.float64))
+            names += [f"{loaded.actions[a]} mode {k}" for k in range(len(m.means))]
+    latent_plot(codes[sel], groups[sel], names, plot, projection, gaussians, seed,
+                title=f"{loaded.dataset['name']} latent codes ({projection})")
