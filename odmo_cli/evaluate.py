@@ -10,7 +10,7 @@ computed once per evaluation and shared by every model compared.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 
@@ -218,6 +218,18 @@ class Report:
     seconds: float = 0.0
 
 
+def model_spec(spec: str | None) -> tuple[str | None, str | None]:
+    """'odmo.pt@conventional' -> ('odmo.pt', 'conventional'): one model's row with its own sampling."""
+    from odmo_cli.generate import SAMPLING
+
+    if spec and "@" in spec:
+        path, _, sampling = spec.rpartition("@")
+        if sampling not in SAMPLING:
+            raise UserError(f"unknown sampling {sampling!r} in {spec!r}; valid: {', '.join(SAMPLING)}")
+        return path, sampling
+    return spec, None
+
+
 def run_evaluation(models: list[str | None], dataset: str | None, data, classifier_path: str | None,
                    cfg: EvalConfig, samples: list[Path] = (), with_customization: bool = False,
                    progress=None) -> Report:
@@ -230,7 +242,8 @@ def run_evaluation(models: list[str | None], dataset: str | None, data, classifi
     if cfg.sampling not in SAMPLING:
         raise UserError(f"unknown sampling {cfg.sampling!r}; valid: {', '.join(SAMPLING)}")
     start = time.perf_counter()
-    loaded = [load_model(m) for m in (models or ([] if samples else [None]))]
+    specs = [model_spec(m) for m in (models or ([] if samples else [None]))]
+    loaded = [load_model(path) for path, _ in specs]
     name = dataset or (loaded[0].dataset["name"] if loaded else None)
     if name is None:
         raise UserError("give --dataset with --samples")
@@ -250,10 +263,11 @@ def run_evaluation(models: list[str | None], dataset: str | None, data, classifi
     report = Report(manifest.name, str(clf_path), {"repeats": cfg.repeats, "per_action": cfg.n_for(manifest.name),
                                                   "sampling": cfg.sampling, "seed": cfg.seed})
     report.rows.append(evaluate_real(real, cfg, manifest.skeleton.parents))
-    for m in loaded:
-        report.rows.append(evaluate_model(m, classifier, real, cfg, progress))
+    for m, (_, sampling) in zip(loaded, specs):
+        own = replace(cfg, sampling=sampling or cfg.sampling)
+        report.rows.append(evaluate_model(m, classifier, real, own, progress))
         if with_customization and isinstance(m, LoadedODMO):  # baselines take no end point
-            report.customization.append(customization(m, classifier, cfg))
+            report.customization.append({**customization(m, classifier, own), "name": report.rows[-1]["name"]})
     for path in samples:
         report.rows.append(evaluate_samples(Path(path), classifier, real, list(manifest.action_names), cfg,
                                             manifest.skeleton.parents))

@@ -12,6 +12,7 @@ from odmo_cli.cli import app
 from odmo_cli.data.demo import demo_folder
 from odmo_cli.data.locate import resolve
 from odmo_cli.data.readers import read_dataset
+from odmo_cli.errors import UserError
 from odmo_cli.evaluate import EvalConfig, run_evaluation
 from odmo_cli.models.classifier import ClassifierTrainConfig, train_classifier
 
@@ -48,6 +49,17 @@ def test_protocol_reports_every_metric_with_ci(lines_model, lines_folder, lines_
     assert 1.0 <= model["metrics"]["inception"][0] <= 2.0
     cust = report.customization[0]["metrics"]
     assert cust["dist_e"][0] < 0.05 and 0 <= cust["accuracy"][0] <= 100
+
+
+def test_a_compared_model_can_sample_conventionally(lines_model, lines_folder, lines_classifier):
+    report = run_evaluation([str(lines_model), f"{lines_model}@conventional"], str(lines_folder), None,
+                            str(lines_classifier), EvalConfig(repeats=2, per_action=10), with_customization=True)
+    names = [r["name"] for r in report.rows]
+    assert names == ["Real motions", "lines.pt", "lines.pt (conventional)"]
+    assert report.rows[1]["metrics"] != report.rows[2]["metrics"]
+    assert [c["name"] for c in report.customization] == names[1:]
+    with pytest.raises(UserError, match="unknown sampling 'sideways'"):
+        run_evaluation([f"{lines_model}@sideways"], str(lines_folder), None, str(lines_classifier), EvalConfig())
 
 
 def test_same_seed_same_numbers(lines_model, lines_folder, lines_classifier):

@@ -18,7 +18,7 @@ METRIC_HEADS = {"accuracy": "Acc ↑", "fid": "FID ↓", "diversity": "Diversity
 
 def evaluate(
     model: Annotated[Optional[str], typer.Option("--model", help="Checkpoint or shipped name (default humanact12).")] = None,
-    compare: Annotated[Optional[list[str]], typer.Option("--compare", help="More checkpoints for the same table.")] = None,
+    compare: Annotated[Optional[list[str]], typer.Option("--compare", help="More checkpoints for the same table; CKPT@conventional: that row samples conventionally.")] = None,
     dataset: Annotated[Optional[str], typer.Option("--dataset", help="Dataset (default: the model's).")] = None,
     classifier: Annotated[Optional[str], typer.Option("--classifier", help="Classifier checkpoint or Action2Motion .tar.")] = None,
     repeats: Annotated[int, typer.Option("--repeats")] = 10,
