@@ -45,3 +45,51 @@ def test_shipped_classifier_accuracy_on_held_out_real_clips(name, data_dir):
     acc = float(np.mean(logits.argmax(1) == clips.labels[val]))
     assert acc == pytest.approx(ckpt["report"]["val_accuracy"], abs=1e-6)
     assert acc >= CLASSIFIERS[name]
+
+
+# -- shipped ODMO models ------------------------------------------------------------------------
+
+SHIPPED_ODMO = [
+    ("humanact12", "humanact12"),
+    pytest.param("cmu", "cmu_mocap", marks=pytest.mark.xfail(
+        strict=True, reason="the CMU MoCap model is not trained yet (odmo ship cmu)")),
+]
+
+
+@pytest.mark.parametrize("short, dataset", SHIPPED_ODMO)
+def test_shipped_odmo_loads_safely_and_describes_its_data(short, dataset):
+    from odmo_cli.generate import load_model, sample, shipped_path
+
+    path = shipped_path(short)
+    assert path is not None, f"no shipped {short} model"
+    assert path.stat().st_size < 10_000_000
+    ckpt = torch.load(path, weights_only=True)
+    manifest = load_manifest(dataset)
+    assert ckpt["kind"] == "odmo" and ckpt["dataset"]["name"] == dataset
+    assert ckpt["dataset"]["actions"] == list(manifest.action_names)
+    assert ckpt["dataset"]["skeleton"] == manifest.skeleton_name
+    assert ckpt["dataset"]["length"] == manifest.clip_length and ckpt["dataset"]["fps"] == manifest.fps
+    assert {"latent_bank", "modes", "train_config"} <= set(ckpt) and "optimizer" not in ckpt
+    batch = sample(load_model(short), ["all"], 2, seed=0)
+    assert batch.motions.shape == (2 * len(manifest.actions), manifest.clip_length, manifest.skeleton.n_joints, 3)
+    assert np.isfinite(batch.motions).all()
+
+
+QUALITY_BARS = {"humanact12": (95.0, 0.25), "cmu_mocap": (88.0, 0.6)}  # Acc >=, FID <= (default-model issue)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("short, dataset", [
+    pytest.param("humanact12", "humanact12", marks=pytest.mark.xfail(strict=True, reason=(
+        "measured Acc 90.06 +- 0.27, FID 0.593 +- 0.017 (10 x 250, shipped classifier): below the bar"))),
+    pytest.param("cmu", "cmu_mocap", marks=pytest.mark.xfail(
+        strict=True, reason="the CMU MoCap model is not trained yet (odmo ship cmu)")),
+])
+def test_shipped_odmo_meets_its_quality_bar(short, dataset, data_dir):
+    """The default protocol (10 repeats, the paper's samples per action, the shipped classifier)."""
+    from odmo_cli.evaluate import EvalConfig, run_evaluation
+
+    report = run_evaluation([short], dataset, data_dir, None, EvalConfig())
+    metrics = report.rows[1]["metrics"]
+    acc_bar, fid_bar = QUALITY_BARS[dataset]
+    assert metrics["accuracy"][0] >= acc_bar and metrics["fid"][0] <= fid_bar, metrics
