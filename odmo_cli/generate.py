@@ -71,14 +71,19 @@ def shipped_path(name: str) -> Path | None:
     return path if path.is_file() else None
 
 
-def _checkpoint(spec: str | Path | None) -> tuple[Path, dict]:
+def checkpoint_path(spec: str | Path | None) -> Path:
+    """A shipped model's short name (humanact12, cmu; None: humanact12) or a path -> the file."""
     spec = str(spec or "humanact12")
-    if spec in SHIPPED:
+    if spec in SHIPPED and not Path(spec).is_file():
         path = shipped_path(spec)
         if path is None:
-            raise UserError(f"no shipped model {spec!r} in this install; pass --model with a checkpoint path")
-    else:
-        path = Path(spec)
+            raise UserError(f"no shipped model {spec!r} in this install; give a checkpoint path instead")
+        return path
+    return Path(spec)
+
+
+def _checkpoint(spec: str | Path | None) -> tuple[Path, dict]:
+    path = checkpoint_path(spec)
     return path, load_checkpoint(path)
 
 

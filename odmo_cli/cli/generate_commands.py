@@ -13,11 +13,13 @@ from odmo_cli.errors import UserError
 
 
 @app.command("info")
-def info(checkpoint: Annotated[Path, typer.Argument(help="A checkpoint (.pt).")], as_json: JsonOpt = False):
+def info(checkpoint: Annotated[str, typer.Argument(help="A checkpoint (.pt), or a shipped model: humanact12, cmu.")],
+         as_json: JsonOpt = False):
     """What a checkpoint holds: model kind, configs, dataset, epochs, final report."""
+    from odmo_cli.generate import checkpoint_path
     from odmo_cli.io import describe_checkpoint
 
-    desc = describe_checkpoint(checkpoint)
+    desc = describe_checkpoint(checkpoint_path(checkpoint))
     if as_json:
         return print_json(desc)
     for key, value in desc.items():
