@@ -244,6 +244,15 @@ def _np_state_from(d: dict) -> dict:
             "has_uint32": d["has_uint32"], "uinteger": d["uinteger"]}
 
 
+def resumed_config(saved: dict, given):
+    """A resumed run keeps its saved schedule; only the length (epochs) and the thread count may change.
+    `given` is the training config asked for now (any of the trainers' config dataclasses)."""
+    cls = type(given)
+    old = cls.from_dict(saved)
+    return cls.from_dict({**asdict(old), "epochs": max(given.epochs, old.epochs),
+                          "threads": given.threads or old.threads})
+
+
 @dataclass
 class TrainResult:
     out: Path
@@ -278,10 +287,7 @@ def train_odmo(clips: ClipSet, tc: TrainConfig, out: Path, overrides: dict | Non
     if resume is not None:
         ckpt = load_checkpoint(resume)
         cfg = ODMOConfig.from_dict(ckpt["config"])
-        saved = TrainConfig.from_dict(ckpt["train_config"])
-        # a resumed run keeps its schedule; only the length and the thread count may change
-        tc = TrainConfig.from_dict({**asdict(saved), "epochs": max(tc.epochs, saved.epochs),
-                                    "threads": tc.threads or saved.threads})
+        tc = resumed_config(ckpt["train_config"], tc)
         trainer = Trainer(clips, cfg, tc, out)
         trainer.load_state(ckpt)
     else:

@@ -8,7 +8,7 @@ one epoch differ. An epoch visits every training clip once, in random order, at 
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Callable
 
@@ -21,7 +21,7 @@ from odmo_cli.errors import TrainingError, UserError
 from odmo_cli.io import load_checkpoint
 from odmo_cli.lie import bone_lengths_from_pose
 from odmo_cli.models.a2m import A2M, A2MConfig, a2m_terms, paper_lambda_kl
-from odmo_cli.train import EpochLog, Trainer, TrainResult, crops_from_start
+from odmo_cli.train import EpochLog, Trainer, TrainResult, crops_from_start, resumed_config
 
 
 @dataclass
@@ -148,10 +148,7 @@ def train_a2m(clips: ClipSet, tc: A2MTrainConfig, out: Path, representation: str
         if representation not in (None, cfg.representation):
             raise UserError(f"cannot resume: {resume} is an a2m-{cfg.representation} model, "
                             f"not {representation}")
-        saved = A2MTrainConfig.from_dict(ckpt["train_config"])
-        # a resumed run keeps its schedule; only the length and the thread count may change
-        tc = A2MTrainConfig.from_dict({**asdict(saved), "epochs": max(tc.epochs, saved.epochs),
-                                       "threads": tc.threads or saved.threads})
+        tc = resumed_config(ckpt["train_config"], tc)
         trainer = A2MTrainer(clips, cfg, tc, out)
         trainer.load_state(ckpt)
     else:

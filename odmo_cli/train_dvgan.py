@@ -22,7 +22,8 @@ from odmo_cli.data.readers import ClipSet
 from odmo_cli.errors import TrainingError, UserError
 from odmo_cli.io import load_checkpoint, save_checkpoint
 from odmo_cli.models.dvgan import DVGAN, DVGANConfig, gradient_penalty, temporal_shift
-from odmo_cli.train import FORMAT_VERSION, TrainResult, _np_state, _np_state_from, crops_from_start, dataset_description
+from odmo_cli.train import (FORMAT_VERSION, TrainResult, _np_state, _np_state_from, crops_from_start, dataset_description,
+                            resumed_config)
 
 
 @dataclass
@@ -206,10 +207,7 @@ def train_dvgan(clips: ClipSet, tc: DVGANTrainConfig, out: Path, generator: str 
         if ckpt.get("kind") != "dvgan":
             raise UserError(f"cannot resume: {resume} holds a {ckpt.get('kind')!r} model, not dvgan")
         cfg = DVGANConfig.from_dict(ckpt["config"])
-        saved = DVGANTrainConfig.from_dict(ckpt["train_config"])
-        # a resumed run keeps its schedule; only the length and the thread count may change
-        tc = DVGANTrainConfig.from_dict({**saved.to_dict(), "epochs": max(tc.epochs, saved.epochs),
-                                         "threads": tc.threads or saved.threads})
+        tc = resumed_config(ckpt["train_config"], tc)
         trainer = DVGANTrainer(clips, cfg, tc, out)
         trainer.load_state(ckpt)
     else:

@@ -12,6 +12,13 @@ from odmo_cli.data.readers import read_dataset
 from odmo_cli.evaluate import shipped_classifier
 from odmo_cli.models.classifier import check_matches, crop_batch, load_classifier
 
+def assert_describes(ckpt: dict, manifest) -> None:
+    """The checkpoint names the dataset's actions, skeleton, clip length and fps."""
+    assert ckpt["dataset"]["actions"] == list(manifest.action_names)
+    assert ckpt["dataset"]["skeleton"] == manifest.skeleton_name
+    assert ckpt["dataset"]["length"] == manifest.clip_length and ckpt["dataset"]["fps"] == manifest.fps
+
+
 CLASSIFIERS = {"humanact12": 0.95, "cmu_mocap": 0.90}  # the evaluation issue's bars
 
 
@@ -22,9 +29,7 @@ def test_shipped_classifier_loads_safely_and_fits_its_dataset(name):
     ckpt = torch.load(path, weights_only=True)
     manifest = load_manifest(name)
     assert ckpt["kind"] == "classifier" and ckpt["dataset"]["name"] == name
-    assert ckpt["dataset"]["actions"] == list(manifest.action_names)
-    assert ckpt["dataset"]["skeleton"] == manifest.skeleton_name
-    assert ckpt["dataset"]["length"] == manifest.clip_length and ckpt["dataset"]["fps"] == manifest.fps
+    assert_describes(ckpt, manifest)
     check_matches(load_classifier(path), manifest)
 
 
@@ -66,9 +71,7 @@ def test_shipped_odmo_loads_safely_and_describes_its_data(short, dataset):
     ckpt = torch.load(path, weights_only=True)
     manifest = load_manifest(dataset)
     assert ckpt["kind"] == "odmo" and ckpt["dataset"]["name"] == dataset
-    assert ckpt["dataset"]["actions"] == list(manifest.action_names)
-    assert ckpt["dataset"]["skeleton"] == manifest.skeleton_name
-    assert ckpt["dataset"]["length"] == manifest.clip_length and ckpt["dataset"]["fps"] == manifest.fps
+    assert_describes(ckpt, manifest)
     assert {"latent_bank", "modes", "train_config"} <= set(ckpt) and "optimizer" not in ckpt
     batch = sample(load_model(short), ["all"], 2, seed=0)
     assert batch.motions.shape == (2 * len(manifest.actions), manifest.clip_length, manifest.skeleton.n_joints, 3)
