@@ -100,6 +100,15 @@ def model_config_for(clips: ClipSet, overrides: dict | None = None) -> ODMOConfi
     return ODMOConfig.from_dict(base)
 
 
+def seeded_start(tc) -> tuple[np.random.Generator, torch.Generator]:
+    """Every trainer's start: its thread count, the seed for parameter initialisation (call this
+    before building the model), and the numpy and torch generators it keeps, all from tc.seed."""
+    if tc.threads:
+        torch.set_num_threads(tc.threads)
+    torch.manual_seed(tc.seed)
+    return np.random.default_rng(tc.seed), torch.Generator().manual_seed(tc.seed)
+
+
 class Trainer:
     """Holds model, optimizer, RNGs and data; `run` trains and checkpoints."""
 
@@ -107,13 +116,9 @@ class Trainer:
 
     def __init__(self, clips: ClipSet, cfg: ODMOConfig, tc: TrainConfig, out: Path):
         self.clips, self.cfg, self.tc, self.out = clips, cfg, tc, Path(out)
-        if tc.threads:
-            torch.set_num_threads(tc.threads)
-        torch.manual_seed(tc.seed)  # parameter initialisation
+        self.np_rng, self.torch_gen = seeded_start(tc)
         self.model = ODMO(cfg)
         self.opt = torch.optim.Adam(self.model.parameters(), lr=tc.lr)
-        self.np_rng = np.random.default_rng(tc.seed)
-        self.torch_gen = torch.Generator().manual_seed(tc.seed)
         self.train_idx, self.val_idx = split_indices(clips, tc.val_fraction, tc.seed)
         if len(self.train_idx) < 2:
             raise UserError(f"need at least 2 training clips, have {len(self.train_idx)}")

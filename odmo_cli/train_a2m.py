@@ -21,7 +21,7 @@ from odmo_cli.errors import TrainingError, UserError
 from odmo_cli.io import load_checkpoint
 from odmo_cli.lie import bone_lengths_from_pose
 from odmo_cli.models.a2m import A2M, A2MConfig, a2m_terms, paper_lambda_kl
-from odmo_cli.train import EpochLog, Trainer, TrainResult, crops_from_start, resumed_config
+from odmo_cli.train import EpochLog, Trainer, TrainResult, crops_from_start, resumed_config, seeded_start
 
 
 @dataclass
@@ -76,13 +76,9 @@ class A2MTrainer(Trainer):
         if tc.lambda_kl < 0:  # resolved here so the checkpoint's train config shows the value used
             tc = replace(tc, lambda_kl=paper_lambda_kl(clips.manifest.name))
         self.clips, self.cfg, self.tc, self.out = clips, cfg, tc, Path(out)
-        if tc.threads:
-            torch.set_num_threads(tc.threads)
-        torch.manual_seed(tc.seed)  # parameter initialisation
+        self.np_rng, self.torch_gen = seeded_start(tc)
         self.model = A2M(cfg)
         self.opt = torch.optim.Adam(self.model.parameters(), lr=tc.lr, weight_decay=tc.weight_decay)
-        self.np_rng = np.random.default_rng(tc.seed)
-        self.torch_gen = torch.Generator().manual_seed(tc.seed)
         self.train_idx, self.val_idx = split_indices(clips, tc.val_fraction, tc.seed)
         if len(self.train_idx) < 1:
             raise UserError("need at least 1 training clip")

@@ -23,7 +23,7 @@ from odmo_cli.errors import TrainingError, UserError
 from odmo_cli.io import load_checkpoint, save_checkpoint
 from odmo_cli.models.dvgan import DVGAN, DVGANConfig, gradient_penalty, temporal_shift
 from odmo_cli.train import (FORMAT_VERSION, TrainResult, _np_state, _np_state_from, crops_from_start, dataset_description,
-                            resumed_config)
+                            resumed_config, seeded_start)
 
 
 @dataclass
@@ -73,14 +73,10 @@ class DVGANTrainer:
 
     def __init__(self, clips: ClipSet, cfg: DVGANConfig, tc: DVGANTrainConfig, out: Path):
         self.clips, self.cfg, self.tc, self.out = clips, cfg, tc, Path(out)
-        if tc.threads:
-            torch.set_num_threads(tc.threads)
-        torch.manual_seed(tc.seed)  # parameter initialisation
+        self.np_rng, self.torch_gen = seeded_start(tc)
         self.model = DVGAN(cfg)
         self.opt_g = torch.optim.Adam(self.model.generator_parameters(), lr=tc.lr, betas=tc.betas)
         self.opt_d = torch.optim.Adam(self.model.discriminator_parameters(), lr=tc.lr, betas=tc.betas)
-        self.np_rng = np.random.default_rng(tc.seed)
-        self.torch_gen = torch.Generator().manual_seed(tc.seed)
         self.train_idx, _ = split_indices(clips, tc.val_fraction, tc.seed)
         if len(self.train_idx) < 2:
             raise UserError(f"need at least 2 training clips, have {len(self.train_idx)}")
