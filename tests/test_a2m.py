@@ -3,6 +3,8 @@ sampling through the common generator interface, checkpoints and the CLI (tiny m
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -202,6 +204,26 @@ def test_cli_trains_samples_and_describes_a2m(tmp_path):
     assert res.exit_code == 2 and "--mode needs an ODMO model" in res.stderr
     res = runner.invoke(app, ["info", str(out), "--json"])
     assert res.exit_code == 0 and '"kind": "a2m"' in res.stdout and '"representation": "xyz"' in res.stdout
+
+
+def test_cli_eval_compares_xyz_and_lie_models_in_one_table(tmp_path):
+    """`odmo eval --compare` takes baselines: Lie outputs keep their bones, xyz outputs drift."""
+    runner, folder = CliRunner(), str(demo_folder("humanact12"))
+    paths = {}
+    for rep in ("xyz", "lie"):
+        paths[rep] = tmp_path / f"a2m-{rep}.pt"
+        res = runner.invoke(app, ["train", "--model", "a2m", "--representation", rep, "--dataset", folder,
+                                  "--epochs", "1", "--batch-size", "64", "--out", str(paths[rep]), "--json"])
+        assert res.exit_code == 0, res.output
+    report = tmp_path / "eval.json"
+    # the issue's spelling: `odmo eval --compare a.pt b.pt ...` (extra checkpoints are positional)
+    res = runner.invoke(app, ["eval", "--model", str(paths["xyz"]), str(paths["lie"]), "--dataset",
+                              folder, "--repeats", "2", "--per-action", "4", "--json", str(report)])
+    assert res.exit_code == 0, res.output
+    rows = {r["name"]: r["metrics"] for r in json.loads(report.read_text())["rows"]}
+    assert list(rows) == ["Real motions", "a2m-xyz.pt", "a2m-lie.pt"]
+    assert rows["a2m-lie.pt"]["bone_std"][0] < 1e-5 < rows["a2m-xyz.pt"]["bone_std"][0]
+    assert all(0 <= m["accuracy"][0] <= 100 and np.isfinite(m["fid"][0]) for m in rows.values())
 
 
 @pytest.mark.parametrize("args, message", [

@@ -289,9 +289,12 @@ def test_cli_train_sample_and_complete(tmp_path, make_motion_folder):
     runner = CliRunner()
     model = tmp_path / "rnn.pt"
     res = runner.invoke(app, ["train", "--model", "dvgan", "--generator", "rnn", "--dataset", str(folder),
-                              "--epochs", "1", "--batch-size", "6", "--out", str(model), "--threads", "1", "--json"])
+                              "--epochs", "1", "--batch-size", "6", "--n-critic", "2", "--out", str(model),
+                              "--threads", "1", "--json"])
     assert res.exit_code == 0, res.output
     assert '"generator": "rnn"' in res.stdout and load_checkpoint(model)["kind"] == "dvgan"
+    # 12 clips (one per action) at batch 6: 2 critic steps, so n_critic 2 gives one generator step
+    assert load_checkpoint(model)["train_config"]["n_critic"] == 2 and '"generator_steps": 1' in res.stdout
     res = runner.invoke(app, ["sample", "--model", str(model), "--action", "walk", "--n", "3",
                               "--out", str(tmp_path / "s.npz")])
     assert res.exit_code == 0, res.output
@@ -318,6 +321,8 @@ def test_cli_train_sample_and_complete(tmp_path, make_motion_folder):
     (["--model", "dvgan", "--epochs", "0"], "epochs, batch size and n_critic must be positive"),
     (["--model", "dvgan", "--resume", "missing.pt"], "checkpoint not found"),
     (["--generator", "rnn"], "--generator applies to --model dvgan only, not 'odmo'"),
+    (["--model", "dvgan", "--n-critic", "0"], "epochs, batch size and n_critic must be positive"),
+    (["--model", "a2m", "--n-critic", "5"], "--n-critic applies to --model dvgan only, not 'a2m'"),
 ])
 def test_cli_train_dvgan_bad_input(tmp_path, args, message):
     out = tmp_path / "m.pt"

@@ -17,7 +17,8 @@ METRIC_HEADS = {"accuracy": "Acc ↑", "fid": "FID ↓", "diversity": "Diversity
 
 
 def evaluate(
-    model: Annotated[Optional[str], typer.Option("--model", help="Checkpoint or shipped name (default humanact12).")] = None,
+    checkpoints: Annotated[Optional[list[str]], typer.Argument(help="More checkpoints for the same table (as --compare).", show_default=False)] = None,
+    model: Annotated[Optional[str], typer.Option("--model", help="Checkpoint or shipped name (default humanact12 when no other model or samples are named).")] = None,
     compare: Annotated[Optional[list[str]], typer.Option("--compare", help="More checkpoints for the same table; CKPT@conventional: that row samples conventionally.")] = None,
     dataset: Annotated[Optional[str], typer.Option("--dataset", help="Dataset (default: the model's).")] = None,
     classifier: Annotated[Optional[str], typer.Option("--classifier", help="Classifier checkpoint or Action2Motion .tar.")] = None,
@@ -34,7 +35,9 @@ def evaluate(
     from odmo_cli.io import atomic_path
 
     cfg = EvalConfig(repeats=repeats, per_action=per_action, sampling=sampling, seed=seed)
-    models = ([model] if model or not samples else []) + list(compare or [])
+    others = list(compare or []) + list(checkpoints or [])
+    # the shipped default joins only when nothing else is named: `--compare a.pt b.pt` is a table of a and b
+    models = ([model] if model or not (samples or others) else []) + others
     with err_console.status("evaluating ..."):
         report = run_evaluation(models, dataset, data, classifier, cfg, list(samples or []), customization)
     table = Table(title=f"{report.dataset}: {report.config['repeats']} repeats x {report.config['per_action']} "

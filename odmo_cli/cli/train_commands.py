@@ -25,6 +25,7 @@ def train(
     batch_size: Annotated[Optional[int], typer.Option("--batch-size", help="Pairs per step (odmo, default 256); clips (classifier, 64; a2m, 128; dvgan, 64).")] = None,
     lr: Annotated[Optional[float], typer.Option("--lr", help="Default 1e-3 (a2m: 2e-4, dvgan: 1e-4).")] = None,
     lr_final: Annotated[Optional[float], typer.Option("--lr-final", help="Cosine-decay target (default: constant lr).")] = None,
+    n_critic: Annotated[Optional[int], typer.Option("--n-critic", help="DVGAN: discriminator steps per generator step (default 10, the paper's).")] = None,
     tf_epochs: Annotated[int, typer.Option("--tf-epochs", help="Teacher forcing decays 1 -> 0.3 over these epochs (0: all).")] = 0,
     ablate: Annotated[Optional[list[str]], typer.Option("--ablate", help="Drop a part: es, traj, cons, end-point (repeatable).")] = None,
     same_class: Annotated[Optional[float], typer.Option("--same-class-fraction", help="Share of same-action pairs (default 0.5, as the authors' release; -1: independent random pairs).")] = None,
@@ -43,6 +44,8 @@ def train(
     out = out or Path(f"{model}.pt")
     if generator is not None and model != "dvgan":
         raise UserError(f"--generator applies to --model dvgan only, not {model!r}")
+    if n_critic is not None and model != "dvgan":
+        raise UserError(f"--n-critic applies to --model dvgan only, not {model!r}")
     if model == "classifier":
         return _train_classifier(dataset, data, epochs, batch_size, lr, out, seed, threads, as_json)
     if model == "a2m":
@@ -57,7 +60,8 @@ def train(
     if representation is not None:
         raise UserError("--representation applies to --model a2m only")
     if model == "dvgan":
-        return _train_dvgan(dataset, data, generator or "cnn", epochs, batch_size, lr, out, resume, seed, threads, as_json)
+        return _train_dvgan(dataset, data, generator or "cnn", epochs, batch_size, lr, n_critic, out, resume, seed,
+                            threads, as_json)
     epochs = 300 if epochs is None else epochs
     batch_size = 256 if batch_size is None else batch_size
     lr = 1e-3 if lr is None else lr
@@ -205,7 +209,8 @@ def _train_a2m(dataset, data, representation, given: dict, out, resume, as_json)
                   f"KL {r['held_out_kl']:.4g} (lambda {r['lambda_kl']:g})")
 
 
-def _train_dvgan(dataset, data, generator, epochs, batch_size, lr, out, resume, seed, threads, as_json) -> None:
+def _train_dvgan(dataset, data, generator, epochs, batch_size, lr, n_critic, out, resume, seed, threads,
+                 as_json) -> None:
     """DVGAN (CNN or RNN generator) with WGAN-GP; defaults are the paper's (see train_dvgan)."""
     from odmo_cli.data.readers import read_dataset
     from odmo_cli.models.dvgan import GENERATORS
@@ -213,7 +218,7 @@ def _train_dvgan(dataset, data, generator, epochs, batch_size, lr, out, resume, 
 
     if generator not in GENERATORS:
         raise UserError(f"unknown DVGAN generator {generator!r}; valid: {', '.join(GENERATORS)}")
-    given = {"epochs": epochs, "batch_size": batch_size, "lr": lr}
+    given = {"epochs": epochs, "batch_size": batch_size, "lr": lr, "n_critic": n_critic}
     tc = DVGANTrainConfig.from_dict({"seed": seed, "threads": threads,
                                      **{k: v for k, v in given.items() if v is not None}})
     manifest, root = resolve_spec(dataset, data)
