@@ -17,8 +17,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Callable
 
-import torch
-
+from odmo_cli.data.manifest import canonical_name
 from odmo_cli.errors import UserError
 from odmo_cli.io import load_checkpoint, save_checkpoint
 
@@ -37,7 +36,6 @@ RECIPES = {
         "file": "odmo_cmu.pt", "classifier_file": "classifier_cmu.pt",
     },
 }
-ALIASES = {"cmu": "cmu_mocap"}
 _KEEP = ("format_version", "kind", "config", "train_config", "dataset", "epoch", "latent_bank", "modes", "report")
 
 
@@ -51,7 +49,7 @@ def compact(ckpt: dict) -> dict:
 
 
 def recipe_name(dataset: str) -> str:
-    name = ALIASES.get(dataset, dataset)
+    name = canonical_name(dataset)
     if name not in RECIPES:
         raise UserError(f"no shipping recipe for {dataset!r}; valid: {', '.join(RECIPES)}, cmu")
     return name

@@ -322,6 +322,8 @@ def test_resolve_by_name_and_folder(tmp_path, humanact12_fixture, cmu_fixture, m
     assert resolve(str(tmp_path / "mf"))[0].format == "folder"
     with pytest.raises(UserError, match="dataset cmu_mocap not found under"):
         resolve("cmu_mocap", root)
+    shutil.copytree(cmu_fixture, root / "cmu_mocap")
+    assert resolve("cmu", root)[0].name == "cmu_mocap"  # the short name, as in `odmo ship cmu`
     with pytest.raises(UserError, match="unknown dataset 'nosuch'.*humanact12"):
         resolve("nosuch", root)
     with pytest.raises(UserError, match="holds a dataset below it"):

@@ -12,18 +12,19 @@ from pathlib import Path
 import numpy as np
 
 from odmo_cli.data.locate import manifest_for_folder
+from odmo_cli.data.manifest import canonical_name
 from odmo_cli.data.prepare import write_folder
 from odmo_cli.data.readers import ClipSet, read_dataset
 from odmo_cli.errors import UserError
 
-DEMO_ALIASES = {"humanact12": "humanact12", "cmu_mocap": "cmu_mocap", "cmu": "cmu_mocap"}
+DEMO_NAMES = ("humanact12", "cmu_mocap")
 
 
 def demo_folder(name: str) -> Path:
     """The shipped demo motion folder of a dataset (`humanact12`, `cmu_mocap` or `cmu`)."""
-    if name not in DEMO_ALIASES:
-        raise UserError(f"no demo subset for {name!r}; valid: {', '.join(DEMO_ALIASES)}")
-    return Path(str(resources.files("odmo_cli") / "assets" / "demo" / DEMO_ALIASES[name]))
+    if canonical_name(name) not in DEMO_NAMES:
+        raise UserError(f"no demo subset for {name!r}; valid: {', '.join(DEMO_NAMES)}, cmu")
+    return Path(str(resources.files("odmo_cli") / "assets" / "demo" / canonical_name(name)))
 
 
 def load_demo(name: str) -> ClipSet:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from odmo_cli.data.manifest import Manifest, available_manifests, load_manifest
+from odmo_cli.data.manifest import Manifest, available_manifests, canonical_name, load_manifest
 from odmo_cli.data.readers import HUMANACT12_NAME
 from odmo_cli.errors import UserError
 
@@ -56,8 +56,8 @@ def find_release(manifest: Manifest, data: str | Path | None = None) -> Path | N
 def resolve(spec: str | Path, data: str | Path | None = None) -> tuple[Manifest, Path]:
     """A dataset name (`humanact12`) or a folder -> (its manifest, the folder holding it)."""
     spec_path = Path(spec).expanduser()
-    if str(spec) in available_manifests():
-        manifest = load_manifest(str(spec))
+    if canonical_name(str(spec)) in available_manifests():
+        manifest = load_manifest(canonical_name(str(spec)))
         folder = find_release(manifest, data)
         if folder is None:
             raise UserError(
@@ -67,7 +67,7 @@ def resolve(spec: str | Path, data: str | Path | None = None) -> tuple[Manifest,
         return manifest, folder
     if spec_path.is_dir():
         return manifest_for_folder(spec_path), spec_path
-    raise UserError(f"unknown dataset {spec!r}: not a folder; valid names: {', '.join(available_manifests())}")
+    raise UserError(f"unknown dataset {spec!r}: not a folder; valid names: {', '.join(available_manifests())}, cmu")
 
 
 def manifest_for_folder(folder: Path) -> Manifest:

@@ -96,6 +96,15 @@ def manifest_dir() -> Path:
     return Path(str(resources.files("odmo_cli") / "manifests"))
 
 
+# Short names users may type for a dataset; the manifest's own name is the canonical one.
+DATASET_ALIASES = {"cmu": "cmu_mocap"}
+
+
+def canonical_name(name: str) -> str:
+    """`cmu` -> `cmu_mocap`; any other name is returned unchanged."""
+    return DATASET_ALIASES.get(name, name)
+
+
 def available_manifests() -> tuple[str, ...]:
     return tuple(sorted(p.stem for p in manifest_dir().glob("*.toml")))
 
