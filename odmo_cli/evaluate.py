@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +20,7 @@ from odmo_cli import metrics
 from odmo_cli.data.dataset import crop_pad_shift, random_start
 from odmo_cli.data.readers import ClipSet
 from odmo_cli.errors import UserError
+from odmo_cli.ship import shipped_file
 
 DEFAULT_PER_ACTION = {"cmu_mocap": 400, "humanact12": 250, "uestc": 200}
 METRICS = ("accuracy", "fid", "diversity", "multimodality", "inception", "n_apd", "bone_std")
@@ -53,11 +53,7 @@ class RealSets:
 
 
 def shipped_classifier(dataset: str) -> Path | None:
-    name = {"humanact12": "classifier_humanact12.pt", "cmu_mocap": "classifier_cmu.pt"}.get(dataset)
-    if name is None:
-        return None
-    path = Path(str(resources.files("odmo_cli") / "assets" / "models" / name))
-    return path if path.is_file() else None
+    return shipped_file(dataset, "classifier_file")
 
 
 def real_crops(clips: ClipSet, per_action: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:

@@ -18,15 +18,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from odmo_cli.data.manifest import normalize_action
+from odmo_cli.data.manifest import canonical_name, normalize_action
 from odmo_cli.errors import UserError
 from odmo_cli.io import StreamedArray, load_checkpoint, save_npz
 from odmo_cli.latent import ActionModes, fit_modes, knn_end_points, sample_codes
 from odmo_cli.models.odmo import ODMO, ODMOConfig
+from odmo_cli.ship import RECIPES, shipped_file
 from odmo_cli.skeletons import get_skeleton
 
 SAMPLING = ("mode-preserving", "conventional")
-SHIPPED = {"humanact12": "odmo_humanact12.pt", "cmu": "odmo_cmu.pt", "cmu_mocap": "odmo_cmu.pt"}
 BASELINES = {"a2m": "odmo_cli.models.a2m", "dvgan": "odmo_cli.models.dvgan"}  # kind -> module
 
 
@@ -67,14 +67,13 @@ class LoadedBaseline:
 
 
 def shipped_path(name: str) -> Path | None:
-    path = Path(str(resources.files("odmo_cli") / "assets" / "models" / SHIPPED[name]))
-    return path if path.is_file() else None
+    return shipped_file(name)
 
 
 def checkpoint_path(spec: str | Path | None) -> Path:
     """A shipped model's short name (humanact12, cmu; None: humanact12) or a path -> the file."""
     spec = str(spec or "humanact12")
-    if spec in SHIPPED and not Path(spec).is_file():
+    if canonical_name(spec) in RECIPES and not Path(spec).is_file():
         path = shipped_path(spec)
         if path is None:
             raise UserError(f"no shipped model {spec!r} in this install; give a checkpoint path instead")

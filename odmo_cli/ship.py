@@ -14,6 +14,7 @@ architecture, so float16 halves the file without changing the model.
 from __future__ import annotations
 
 from dataclasses import asdict
+from importlib import resources
 from pathlib import Path
 from typing import Callable
 
@@ -46,6 +47,15 @@ def compact(ckpt: dict) -> dict:
     out["history"] = list(ckpt.get("history", []))[-1:]
     out["weights_dtype"] = "float16"
     return out
+
+
+def shipped_file(dataset: str, key: str = "file") -> Path | None:
+    """The installed shipped file of a dataset (key "file": ODMO, "classifier_file"); None if absent."""
+    recipe = RECIPES.get(canonical_name(dataset))
+    if recipe is None:
+        return None
+    path = Path(str(resources.files("odmo_cli") / "assets" / "models" / recipe[key]))
+    return path if path.is_file() else None
 
 
 def recipe_name(dataset: str) -> str:
