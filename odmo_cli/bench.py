@@ -146,7 +146,8 @@ def bench_evaluation(model: str | None, data, runs: int) -> list[Figure]:
 def run_bench(model: str | None = None, data=None, runs: int = 5, only: tuple[str, ...] = (),
               progress: Callable[[str], None] | None = None) -> BenchReport:
     from odmo_cli.errors import UserError
-    from odmo_cli.generate import shipped_path
+    from odmo_cli.generate import checkpoint_path
+    from odmo_cli.ship import shipped_file
 
     report = BenchReport(machine())
     want = lambda part: not only or part in only  # noqa: E731
@@ -155,9 +156,11 @@ def run_bench(model: str | None = None, data=None, runs: int = 5, only: tuple[st
         folder = Path(tmp)
         path, note = None, ""
         if model:
-            path = Path(model) if Path(model).is_file() else shipped_path(model)
-        elif shipped_path("humanact12"):
-            path = shipped_path("humanact12")
+            path = checkpoint_path(model)
+            if not path.is_file():
+                raise UserError(f"no model {model!r}: give a checkpoint file or a shipped name (humanact12, cmu)")
+        else:
+            path = shipped_file("humanact12")
         if path is None:
             path, note = random_checkpoint("humanact12", folder), "untrained network, HumanAct12 shapes"
         if want("sampling"):

@@ -66,15 +66,11 @@ class LoadedBaseline:
     action_index = LoadedODMO.action_index
 
 
-def shipped_path(name: str) -> Path | None:
-    return shipped_file(name)
-
-
 def checkpoint_path(spec: str | Path | None) -> Path:
     """A shipped model's short name (humanact12, cmu; None: humanact12) or a path -> the file."""
     spec = str(spec or "humanact12")
     if canonical_name(spec) in RECIPES and not Path(spec).is_file():
-        path = shipped_path(spec)
+        path = shipped_file(spec)
         if path is None:
             raise UserError(f"no shipped model {spec!r} in this install; give a checkpoint path instead")
         return path

@@ -26,3 +26,9 @@ def test_bench_bad_part():
     res = CliRunner().invoke(app, ["bench", "--only", "gpu"])
     assert res.exit_code == 2
     assert "unknown benchmark part 'gpu'; valid: sampling, end-to-end, training, evaluation" in res.stderr
+
+
+def test_bench_unknown_model(tmp_path):
+    res = CliRunner().invoke(app, ["bench", "--model", str(tmp_path / "missing.pt"), "--only", "sampling"])
+    assert res.exit_code == 2
+    assert "give a checkpoint file or a shipped name (humanact12, cmu)" in res.stderr

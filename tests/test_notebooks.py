@@ -16,7 +16,7 @@ import pytest
 from nbclient import NotebookClient
 
 import odmo_cli
-from odmo_cli.generate import shipped_path
+from odmo_cli.ship import shipped_file
 
 REPO = Path(__file__).resolve().parents[1]
 NOTEBOOKS = sorted((REPO / "notebooks").glob("*.ipynb"))
@@ -64,7 +64,7 @@ def test_the_four_notebooks_are_there_and_stored_clean():
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
 def test_notebook_runs_headless(path, tmp_path):
     nb = nbformat.read(path, as_version=4)
-    if "load_odmo" in code_of(nb) and shipped_path("humanact12") is None:
+    if "load_odmo" in code_of(nb) and shipped_file("humanact12") is None:
         pytest.skip(f"{path.name} needs the shipped default model odmo_cli/assets/models/odmo_humanact12.pt, "
                     "not in this install yet")
     # the kernel must import the odmo_cli under test, whether installed or on the test's path

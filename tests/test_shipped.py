@@ -62,9 +62,10 @@ SHIPPED_ODMO = [
 
 @pytest.mark.parametrize("short, dataset", SHIPPED_ODMO)
 def test_shipped_odmo_loads_safely_and_describes_its_data(short, dataset):
-    from odmo_cli.generate import load_model, sample, shipped_path
+    from odmo_cli.generate import load_model, sample
+    from odmo_cli.ship import shipped_file
 
-    path = shipped_path(short)
+    path = shipped_file(short)
     assert path is not None, f"no shipped {short} model"
     assert path.stat().st_size < 10_000_000
     ckpt = torch.load(path, weights_only=True)
