@@ -69,12 +69,14 @@ class LoadedBaseline:
 def checkpoint_path(spec: str | Path | None) -> Path:
     """A shipped model's short name (humanact12, cmu; None: humanact12) or a path -> the file."""
     spec = str(spec or "humanact12")
-    if canonical_name(spec) in RECIPES and not Path(spec).is_file():
-        path = shipped_file(spec)
-        if path is None:
-            raise UserError(f"no shipped model {spec!r} in this install; give a checkpoint path instead")
-        return path
-    return Path(spec)
+    if Path(spec).is_file():
+        return Path(spec)
+    if canonical_name(spec) not in RECIPES:
+        raise UserError(f"no model {spec!r}: give a checkpoint file or a shipped name (humanact12, cmu)")
+    path = shipped_file(spec)
+    if path is None:
+        raise UserError(f"no shipped model {spec!r} in this install; give a checkpoint path instead")
+    return path
 
 
 def _checkpoint(spec: str | Path | None) -> tuple[Path, dict]:

@@ -260,3 +260,11 @@ def test_baseline_refuses_odmo_only_options(noise_checkpoint, kwargs, flag):
         sample(load_model(noise_checkpoint), ["walk"], 2, **kwargs)
     with pytest.raises(UserError, match="needs an ODMO checkpoint"):
         load_odmo(noise_checkpoint)
+
+
+def test_sample_with_a_missing_model_names_the_choices(tmp_path):
+    res = CliRunner().invoke(app, ["sample", "--model", str(tmp_path / "missing.pt"), "--action", "jump",
+                                   "--out", str(tmp_path / "x.npz")])
+    assert res.exit_code == 2
+    assert "give a checkpoint file or a shipped name (humanact12, cmu)" in res.stderr
+    assert not (tmp_path / "x.npz").exists()
