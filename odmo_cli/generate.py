@@ -23,7 +23,7 @@ from odmo_cli.errors import UserError
 from odmo_cli.io import StreamedArray, load_checkpoint, save_npz
 from odmo_cli.latent import ActionModes, fit_modes, knn_end_points, sample_codes
 from odmo_cli.models.odmo import ODMO, ODMOConfig
-from odmo_cli.ship import RECIPES, shipped_file
+from odmo_cli.ship import RECIPES, float_state, shipped_file
 from odmo_cli.skeletons import get_skeleton
 
 SAMPLING = ("mode-preserving", "conventional")
@@ -110,7 +110,7 @@ def _odmo_from(path: Path, ckpt: dict) -> LoadedODMO:
     if "latent_bank" not in ckpt:
         raise UserError(f"{path} has no latent bank: its training did not finish (resume it to the end)")
     model = ODMO(ODMOConfig.from_dict(ckpt["config"]))
-    model.load_state_dict(ckpt["state_dict"])
+    model.load_state_dict(float_state(ckpt))
     model.eval()
     modes = ckpt.get("modes") or fit_modes(ckpt["latent_bank"], model.cfg.n_classes)
     return LoadedODMO(model, ckpt["dataset"], ckpt["latent_bank"], modes, str(path))

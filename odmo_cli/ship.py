@@ -7,8 +7,12 @@ interrupted build continues where it stopped (resume is exact) instead of starti
 
 Compact means: no optimizer, RNG or split, the loss history cut to its last entry, and the weights
 stored as float16 (loaded back into float32 parameters). Most of ODMO's weights are the trajectory
-generator's expand layer, (C*D + 3) x T(C*D + 3): 3.5 M values for HumanAct12 in the authors'
-architecture, so float16 halves the file without changing the model.
+generator's expand layer, (C*D + 3) x T(C*D + 3): 3.5 M of HumanAct12's 4.6 M values in the authors'
+architecture. Matrices that large are stored as int8 with one float16 scale per row (symmetric,
+|w| / 127 steps); `float_state` restores float32. Measured on the shipped HumanAct12 model (full
+protocol, 10 x 250): int8 rows for the expand layer leave Acc and FID unchanged (90.06 / 0.592 against
+90.06 / 0.593), while int8 for every matrix costs 1 point of Acc and raises FID to 0.764 (the
+autoregressive decoder amplifies the rounding), so only the large ones are rounded.
 """
 
 from __future__ import annotations
@@ -17,6 +21,8 @@ from dataclasses import asdict
 from importlib import resources
 from pathlib import Path
 from typing import Callable
+
+import torch
 
 from odmo_cli.data.manifest import canonical_name
 from odmo_cli.errors import UserError
@@ -40,13 +46,37 @@ RECIPES = {
 _KEEP = ("format_version", "kind", "config", "train_config", "dataset", "epoch", "latent_bank", "modes", "report")
 
 
-def compact(ckpt: dict) -> dict:
-    """A finished checkpoint without what only training needs, weights as float16."""
+INT8_MIN_VALUES = 1 << 20  # matrices with at least this many values are stored as int8 rows
+
+
+def compact(ckpt: dict, int8_min_values: int = INT8_MIN_VALUES) -> dict:
+    """A finished checkpoint without what only training needs: weights as float16, and matrices of
+    at least `int8_min_values` values as int8 rows with a float16 scale each."""
     out = {k: ckpt[k] for k in _KEEP if k in ckpt}
-    out["state_dict"] = {k: v.half() if v.is_floating_point() else v for k, v in ckpt["state_dict"].items()}
+    state, scales = {}, {}
+    for k, v in ckpt["state_dict"].items():
+        if v.is_floating_point() and v.dim() == 2 and v.numel() >= int8_min_values:
+            state[k], scales[k] = int8_rows(v)
+        else:
+            state[k] = v.half() if v.is_floating_point() else v
+    out["state_dict"] = state
+    out["int8_scales"] = scales
     out["history"] = list(ckpt.get("history", []))[-1:]
-    out["weights_dtype"] = "float16"
+    out["weights_dtype"] = "float16" + (f"; int8 rows for {', '.join(scales)}" if scales else "")
     return out
+
+
+def int8_rows(w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(R, K) float -> (R, K) int8 and (R, 1) float16 scales with w ~= q * scale, |q| <= 127."""
+    scale = (w.float().abs().amax(dim=1, keepdim=True) / 127).clamp_min(1e-12).half()
+    q = torch.round(w.float() / scale.float()).clamp(-127, 127).to(torch.int8)
+    return q, scale
+
+
+def float_state(ckpt: dict) -> dict:
+    """The checkpoint's state dict with int8 rows (compact files) turned back into float32 matrices."""
+    scales = ckpt.get("int8_scales") or {}
+    return {k: v.float() * scales[k].float() if k in scales else v for k, v in ckpt["state_dict"].items()}
 
 
 def shipped_file(dataset: str, key: str = "file") -> Path | None:

@@ -297,7 +297,7 @@ def test_cli_train_and_info(tmp_path):
     assert res.exit_code == 0, res.output
     assert out.is_file()
     res = runner.invoke(app, ["info", str(out), "--json"])
-    assert res.exit_code == 0 and '"kind": "odmo"' in res.stdout
+    assert res.exit_code == 0 and '"kind": "odmo"' in res.stdout and '"weights": "float32"' in res.stdout
 
 
 @pytest.mark.parametrize("args, message", [

@@ -11,7 +11,7 @@ from odmo_cli import ship
 from odmo_cli.cli import app
 from odmo_cli.errors import UserError
 from odmo_cli.generate import load_model, sample
-from odmo_cli.io import load_checkpoint, save_checkpoint
+from odmo_cli.io import describe_checkpoint, load_checkpoint, save_checkpoint
 
 
 def test_compact_keeps_what_sampling_needs_in_half_the_space(lines_model, tmp_path):
@@ -19,7 +19,7 @@ def test_compact_keeps_what_sampling_needs_in_half_the_space(lines_model, tmp_pa
     small = ship.compact(full)
     assert {"optimizer", "rng", "split"}.isdisjoint(small)
     assert {"config", "dataset", "latent_bank", "modes", "state_dict"} <= set(small)
-    assert len(small["history"]) == 1 and small["weights_dtype"] == "float16"
+    assert len(small["history"]) == 1 and small["weights_dtype"] == "float16"  # no matrix of 1M values
     floats = [v for v in small["state_dict"].values() if v.is_floating_point()]
     assert floats and all(v.dtype == torch.float16 for v in floats)
     path = tmp_path / "small.pt"
@@ -30,6 +30,36 @@ def test_compact_keeps_what_sampling_needs_in_half_the_space(lines_model, tmp_pa
     b = sample(load_model(path), ["glide"], 5, seed=0).motions
     assert b.dtype == np.float32
     assert np.abs(a - b).max() < 0.02 * np.abs(a).max()
+
+
+def test_compact_stores_large_matrices_as_int8_rows(lines_model, tmp_path):
+    full = load_checkpoint(lines_model)
+    biggest = max(v.numel() for v in full["state_dict"].values() if v.dim() == 2)
+    small = ship.compact(full, int8_min_values=biggest)
+    (name,) = small["int8_scales"]  # only the largest matrix is rounded to int8
+    assert small["state_dict"][name].dtype == torch.int8 and name in small["weights_dtype"]
+    assert small["int8_scales"][name].shape == (full["state_dict"][name].shape[0], 1)
+    restored = ship.float_state(small)[name]
+    assert restored.dtype == torch.float32
+    step = small["int8_scales"][name].float()
+    assert torch.all((restored - full["state_dict"][name]).abs() <= 0.5 * step + 1e-6)
+    path = tmp_path / "int8.pt"
+    save_checkpoint(path, small)
+    assert load_checkpoint(path)["state_dict"][name].dtype == torch.int8  # weights_only loads int8
+    assert describe_checkpoint(path)["weights"] == f"float16; int8 rows for {name}"  # odmo info
+    a = sample(load_model(lines_model), ["glide"], 5, seed=0).motions
+    b = sample(load_model(path), ["glide"], 5, seed=0).motions
+    assert np.abs(a - b).max() < 0.05 * np.abs(a).max()
+
+
+def test_int8_rows_known_values():
+    w = torch.tensor([[127.0, -63.5, 0.2], [0.0, 0.0, 0.0], [-2.54, 1.0, 0.0]])
+    q, scale = ship.int8_rows(w)
+    assert q.dtype == torch.int8 and scale.dtype == torch.float16
+    assert q[0].tolist() == [127, -64, 0] and scale[0, 0] == 1.0  # -63.5 rounds half to even
+    assert q[1].tolist() == [0, 0, 0] and torch.isfinite(scale).all()  # an all-zero row stays zero
+    assert q[2, 0] == -127 and q[2, 1] == 50
+    assert torch.allclose(q.float() * scale.float(), w, atol=0.5 * float(scale.max()))
 
 
 def test_recipe_names():

@@ -67,7 +67,7 @@ def test_shipped_odmo_loads_safely_and_describes_its_data(short, dataset):
 
     path = shipped_file(short)
     assert path is not None, f"no shipped {short} model"
-    assert path.stat().st_size < 10_000_000
+    assert path.stat().st_size < 6_500_000  # float16, the expand layer as int8 rows
     ckpt = torch.load(path, weights_only=True)
     manifest = load_manifest(dataset)
     assert ckpt["kind"] == "odmo" and ckpt["dataset"]["name"] == dataset
@@ -101,9 +101,9 @@ QUALITY_BARS = {"humanact12": (95.0, 0.25), "cmu_mocap": (88.0, 0.6)}  # Acc >=,
 @pytest.mark.slow
 @pytest.mark.parametrize("short, dataset", [
     pytest.param("humanact12", "humanact12", marks=pytest.mark.xfail(strict=True, reason=(
-        "measured Acc 90.06 +- 0.27, FID 0.593 +- 0.017 (10 x 250, shipped classifier): below the bar"))),
+        "measured Acc 90.06 +- 0.28, FID 0.592 +- 0.016 (10 x 250, shipped classifier): below the bar"))),
     pytest.param("cmu", "cmu_mocap", marks=pytest.mark.xfail(strict=True, reason=(
-        "measured Acc 76.19 +- 0.25, FID 2.562 +- 0.042 (10 x 400, shipped classifier): below the bar"))),
+        "measured Acc 76.19 +- 0.25, FID 2.564 +- 0.042 (10 x 400, shipped classifier): below the bar"))),
 ])
 def test_shipped_odmo_meets_its_quality_bar(short, dataset, data_dir):
     """The default protocol (10 repeats, the paper's samples per action, the shipped classifier)."""
