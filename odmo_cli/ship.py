@@ -2,8 +2,9 @@
 
 `odmo ship humanact12 --out DIR` trains the evaluation classifier and ODMO with the recipe below,
 fits the mode mixtures, and writes the compact files `sample`/`eval` load by short name. The
-same seed gives the same files. ODMO's training checkpoint is kept beside them while it runs, so an
-interrupted build continues where it stopped (resume is exact) instead of starting over.
+same seed gives the same files on one host (kernels on other CPUs round differently). ODMO's
+training checkpoint is kept beside them while it runs, so an interrupted build continues where it
+stopped (resume is exact) instead of starting over.
 
 Compact means: no optimizer, RNG or split, the loss history cut to its last entry, and the weights
 stored as float16 (loaded back into float32 parameters). Most of ODMO's weights are the trajectory
