@@ -55,9 +55,9 @@ def test_compact_stores_large_matrices_as_int8_rows(lines_model, tmp_path):
 def test_int8_rows_known_values():
     w = torch.tensor([[127.0, -63.5, 0.2], [0.0, 0.0, 0.0], [-2.54, 1.0, 0.0]])
     q, scale = ship.int8_rows(w)
-    assert q.dtype == torch.int8 and scale.dtype == torch.float16
+    assert q.dtype == torch.int8 and scale.dtype == torch.float32
     assert q[0].tolist() == [127, -64, 0] and scale[0, 0] == 1.0  # -63.5 rounds half to even
-    assert q[1].tolist() == [0, 0, 0] and torch.isfinite(scale).all()  # an all-zero row stays zero
+    assert q[1].tolist() == [0, 0, 0] and bool(scale[1, 0] > 0)  # an all-zero row: zeros, no 0/0
     assert q[2, 0] == -127 and q[2, 1] == 50
     assert torch.allclose(q.float() * scale.float(), w, atol=0.5 * float(scale.max()))
 
