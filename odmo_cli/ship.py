@@ -2,7 +2,7 @@
 
 `odmo ship humanact12 --out DIR` trains the evaluation classifier and ODMO with the recipe below,
 fits the mode mixtures, and writes the compact files `sample`/`eval` load by short name. The
-same seed gives the same files on one host (kernels on other CPUs round differently). ODMO's
+same seed gives the same files on one host (across hosts, kernels may round differently). ODMO's
 training checkpoint is kept beside them while it runs, so an interrupted build continues where it
 stopped (resume is exact) instead of starting over.
 
