@@ -5,6 +5,11 @@ accuracy, FID against a real set of the same size, Diversity, Multimodality, n-A
 consistency; reported as mean and 95% confidence half-width over the sets. Real motions get the
 same treatment against an independent real set (the "Real motions" row). Real features are
 computed once per evaluation and shared by every model compared.
+
+With `held_out`, a second reference row scores crops of only the real clips the classifier was
+validated on, never trained on, against the same real sets: what a generator whose motions are as
+new to the classifier as unseen real ones, and otherwise real, would score. The "Real motions" row
+draws mostly from the classifier's training clips, which it reads better than any new motion.
 """
 
 from __future__ import annotations
@@ -67,6 +72,36 @@ def real_crops(clips: ClipSet, per_action: int, rng: np.random.Generator) -> tup
             motions.append(crop_pad_shift(m, T, random_start(len(m), T, rng)))
         labels += [c] * per_action
     return np.stack(motions), np.asarray(labels)
+
+
+def held_out_clips(classifier, clips: ClipSet) -> np.ndarray:
+    """Indices of the clips `classifier` was validated on (its checkpoint's split), checked against `clips`."""
+    name = Path(classifier.info.get("file", "the classifier")).name
+    split = classifier.info.get("split")
+    if not split or len(split.get("val", ())) == 0:
+        raise UserError(f"--held-out needs an odmo classifier checkpoint with a validation split; {name} has none")
+    val = split["val"]
+    if len(split.get("train", ())) + len(val) != len(clips) or val.max() >= len(clips):
+        raise UserError(f"--held-out: {name} was split over {len(split.get('train', ())) + len(val)} clips, "
+                        f"the dataset has {len(clips)}; use the copy of the data it was trained on")
+    missing = [a for c, a in enumerate(clips.manifest.action_names) if not np.any(clips.labels[val] == c)]
+    if missing:
+        raise UserError(f"--held-out: {name} held out no clip of {', '.join(missing)}")
+    return val
+
+
+def evaluate_held_out(clips: ClipSet, val: np.ndarray, classifier, real: RealSets, cfg: EvalConfig) -> dict:
+    """The protocol for crops of the classifier's held-out real clips, against the shared real sets."""
+    rng = np.random.default_rng(cfg.seed + 40_000)
+    held = replace(clips, motions=[clips.motions[i] for i in val], labels=clips.labels[val])
+    n, parents = cfg.n_for(clips.manifest.name), clips.manifest.skeleton.parents
+    rows = []
+    for r in range(cfg.repeats):
+        motions, labels = real_crops(held, n, rng)  # (C*n, T, J, 3)
+        logits, feats = classifier.predict(motions)
+        rows.append(set_metrics(logits, feats, labels, real.features[r + 1], motions, parents, real.apd, rng))
+    return {"name": "Real, classifier's held-out clips", "metrics": summarize(rows), "per_repeat": rows,
+            "clips": int(len(val))}
 
 
 def _apd_per_action(motions: np.ndarray, labels: np.ndarray, n_classes: int, cap: int = 250) -> np.ndarray:
@@ -228,7 +263,7 @@ def model_spec(spec: str | None) -> tuple[str | None, str | None]:
 
 def run_evaluation(models: list[str | None], dataset: str | None, data, classifier_path: str | None,
                    cfg: EvalConfig, samples: list[Path] = (), with_customization: bool = False,
-                   progress=None) -> Report:
+                   progress=None, held_out: bool = False) -> Report:
     """Load everything once, compute real features once, evaluate every model (and samples file)."""
     from odmo_cli.data.locate import resolve
     from odmo_cli.data.readers import read_dataset
@@ -255,10 +290,13 @@ def run_evaluation(models: list[str | None], dataset: str | None, data, classifi
     check_matches(classifier, manifest)
     torch.manual_seed(cfg.seed)
     clips = read_dataset(root, manifest)
+    val = held_out_clips(classifier, clips) if held_out else None  # fail before the slow part
     real = real_sets(clips, classifier, cfg)
     report = Report(manifest.name, str(clf_path), {"repeats": cfg.repeats, "per_action": cfg.n_for(manifest.name),
                                                   "sampling": cfg.sampling, "seed": cfg.seed})
     report.rows.append(evaluate_real(real, cfg, manifest.skeleton.parents))
+    if val is not None:
+        report.rows.append(evaluate_held_out(clips, val, classifier, real, cfg))
     for m, (_, sampling) in zip(loaded, specs):
         own = replace(cfg, sampling=sampling or cfg.sampling)
         report.rows.append(evaluate_model(m, classifier, real, own, progress))

@@ -3,18 +3,21 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
+import torch
 from typer.testing import CliRunner
 
 from odmo_cli.cli import app
+from odmo_cli.data.dataset import split_indices
 from odmo_cli.data.demo import demo_folder
 from odmo_cli.data.locate import resolve
 from odmo_cli.data.readers import read_dataset
 from odmo_cli.errors import UserError
-from odmo_cli.evaluate import EvalConfig, run_evaluation
-from odmo_cli.models.classifier import ClassifierTrainConfig, train_classifier
+from odmo_cli.evaluate import EvalConfig, evaluate_held_out, evaluate_real, held_out_clips, real_sets, run_evaluation
+from odmo_cli.models.classifier import ClassifierTrainConfig, load_classifier, train_classifier
 
 
 @pytest.fixture(scope="module")
@@ -78,7 +81,6 @@ def test_samples_file_is_scored_like_the_model(lines_model, lines_folder, lines_
     report = run_evaluation([], str(lines_folder), None, str(lines_classifier), EvalConfig(repeats=1, per_action=20),
                             samples=[out])
     row = report.rows[-1]
-    from odmo_cli.models.classifier import load_classifier
     data = np.load(out)
     logits, _ = load_classifier(lines_classifier).predict(data["motions"])
     expected = 100 * np.mean(logits.argmax(1) == np.array([["glide", "crouch"].index(a) for a in data["actions"]]))
@@ -123,3 +125,58 @@ def test_classifier_for_another_skeleton_is_refused(lines_model, lines_folder, t
                                    "--classifier", str(clf)])
     assert res.exit_code == 2
     assert "classifier expects 72 inputs (24 joints), the dataset has 20 joints" in res.stderr
+
+
+class MarkedClassifier:
+    """Reads the action from a marker only the held-out clips carry (joint 1 at root + (10 + action, 0, 0));
+    every other motion is called action 0. Features come from a real classifier."""
+
+    def __init__(self, inner):
+        self.inner, self.info = inner, inner.info
+
+    def predict(self, motions, batch: int = 1024):
+        _, feats = self.inner.predict(motions)
+        d = motions[:, 0, 1, 0] - motions[:, 0, 0, 0]  # (N,)
+        pred = np.where(d > 5, np.rint(d - 10), 0).astype(int)
+        return np.eye(2)[pred] * 5.0, feats
+
+
+def test_held_out_row_draws_only_the_classifiers_validation_clips(lines_folder, lines_classifier):
+    manifest, root = resolve(lines_folder)
+    clips = read_dataset(root, manifest)
+    clf = MarkedClassifier(load_classifier(lines_classifier))
+    val = held_out_clips(clf, clips)
+    assert np.array_equal(val, split_indices(clips, 0.25, 0)[1])  # the split the classifier was trained with
+    motions = [m.copy() for m in clips.motions]
+    for i in val:
+        motions[i][:, 1] = motions[i][:, 0] + np.array([10.0 + clips.labels[i], 0, 0], dtype=np.float32)
+    clips = replace(clips, motions=motions)
+    cfg = EvalConfig(repeats=2, per_action=30)
+    real = real_sets(clips, clf, cfg)
+    row = evaluate_held_out(clips, val, clf, real, cfg)
+    assert row["metrics"]["accuracy"][0] == 100.0 and row["clips"] == len(val)
+    # all clips: the unmarked training clips of action 1 are misread, so the real row scores less
+    assert evaluate_real(real, cfg, manifest.skeleton.parents)["metrics"]["accuracy"][0] < 90
+
+
+def test_cli_eval_held_out_row(lines_model, lines_folder, lines_classifier, tmp_path):
+    out = tmp_path / "report.json"
+    args = ["eval", "--model", str(lines_model), "--dataset", str(lines_folder), "--classifier",
+            str(lines_classifier), "--repeats", "2", "--per-action", "10", "--held-out", "--json", str(out)]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["name"] for r in rows] == ["Real motions", "Real, classifier's held-out clips", "lines.pt"]
+    assert set(rows[1]["metrics"]) == set(rows[0]["metrics"])
+
+
+def test_held_out_needs_a_split_that_fits(lines_folder, lines_classifier, tmp_path):
+    manifest, root = resolve(lines_folder)
+    clips = read_dataset(root, manifest)
+    bare = tmp_path / "bare.pt"  # a bare state dict, as other projects' classifiers come: no split
+    torch.save(torch.load(lines_classifier, weights_only=True)["state_dict"], bare)
+    with pytest.raises(UserError, match="needs an odmo classifier checkpoint with a validation split; bare.pt"):
+        held_out_clips(load_classifier(bare), clips)
+    fewer = replace(clips, motions=clips.motions[:-1], labels=clips.labels[:-1])
+    with pytest.raises(UserError, match=f"split over {len(clips)} clips, the dataset has {len(clips) - 1}"):
+        held_out_clips(load_classifier(lines_classifier), fewer)

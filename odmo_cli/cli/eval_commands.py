@@ -27,6 +27,7 @@ def evaluate(
     sampling: Annotated[str, typer.Option("--sampling", help="mode-preserving | conventional")] = "mode-preserving",
     samples: Annotated[Optional[list[Path]], typer.Option("--samples", help="Evaluate a samples .npz made elsewhere.")] = None,
     customization: Annotated[bool, typer.Option("--customization", help="Also the end-point protocol (§4.4).")] = False,
+    held_out: Annotated[bool, typer.Option("--held-out", help="Also a row for the real clips the classifier never trained on (odmo classifiers).")] = False,
     json_out: Annotated[Optional[Path], typer.Option("--json", help="Write the full report as JSON here.")] = None,
     data: DataOpt = None, seed: SeedOpt = 0,
 ):
@@ -39,7 +40,8 @@ def evaluate(
     # the shipped default joins only when nothing else is named: `--compare a.pt b.pt` is a table of a and b
     models = ([model] if model or not (samples or others) else []) + others
     with err_console.status("evaluating ..."):
-        report = run_evaluation(models, dataset, data, classifier, cfg, list(samples or []), customization)
+        report = run_evaluation(models, dataset, data, classifier, cfg, list(samples or []), customization,
+                                held_out=held_out)
     table = Table(title=f"{report.dataset}: {report.config['repeats']} repeats x {report.config['per_action']} "
                         f"per action, classifier {Path(report.classifier).name} ({report.seconds:.0f} s)")
     table.add_column("model")

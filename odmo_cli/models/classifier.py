@@ -256,6 +256,8 @@ def load_classifier(path: str | Path, expect_classes: int | None = None, expect_
             raise UserError(f"{path}: classifier checkpoint without config or state_dict") from None
         info.update(source="odmo", dataset=payload.get("dataset", {}), report=payload.get("report", {}),
                     format_version=payload.get("format_version"), verified=None, release=None)
+        if isinstance(payload.get("split"), dict):  # clip indices it was trained / validated on
+            info["split"] = {k: np.asarray(v, dtype=np.int64) for k, v in payload["split"].items()}
     else:
         if "model" in payload and _is_state_dict(payload["model"]):
             state, source = _strip_prefix(payload["model"]), "a2m"
