@@ -134,6 +134,8 @@ def set_metrics(logits: np.ndarray, feats: np.ndarray, labels: np.ndarray, real_
         "multimodality": metrics.multimodality(feats, labels, 20, rng=rng),
         "inception": metrics.inception_score(_softmax(logits)),
     }
+    per_class = metrics.accuracy_per_class(logits, labels, len(real_apd))  # (C,), NaN where absent
+    out.update({f"accuracy/{c}": 100 * float(v) for c, v in enumerate(per_class) if np.isfinite(v)})
     if motions is not None:
         gen_apd = _apd_per_action(motions, labels, len(real_apd))
         out["n_apd"] = float(np.mean(gen_apd / real_apd))
@@ -147,6 +149,12 @@ def set_metrics(logits: np.ndarray, feats: np.ndarray, labels: np.ndarray, real_
 def _softmax(logits: np.ndarray) -> np.ndarray:
     e = np.exp(logits - logits.max(1, keepdims=True))
     return e / e.sum(1, keepdims=True)
+
+
+def split_by_action(row: dict, actions) -> None:
+    """Move the per-action accuracies ("accuracy/<index>") from row["metrics"] to row["by_action"]."""
+    keys = [k for k in row["metrics"] if k.startswith("accuracy/")]
+    row["by_action"] = {actions[int(k.split("/")[1])]: row["metrics"].pop(k) for k in keys}
 
 
 def summarize(per_repeat: list[dict[str, float]]) -> dict[str, list[float]]:
@@ -305,5 +313,7 @@ def run_evaluation(models: list[str | None], dataset: str | None, data, classifi
     for path in samples:
         report.rows.append(evaluate_samples(Path(path), classifier, real, list(manifest.action_names), cfg,
                                             manifest.skeleton.parents))
+    for row in report.rows:
+        split_by_action(row, list(manifest.action_names))
     report.seconds = time.perf_counter() - start
     return report

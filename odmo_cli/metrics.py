@@ -55,12 +55,8 @@ def _as_labels(labels: ArrayLike, n: int, name: str = "labels") -> NDArray[np.in
 # Recognition accuracy
 
 
-def accuracy(logits_or_pred: ArrayLike, labels: ArrayLike) -> float:
-    """Fraction of samples whose predicted class equals the label, in [0, 1].
-
-    `logits_or_pred` is either (N, C) scores (logits or probabilities; the argmax is the
-    prediction) or (N,) predicted class indices. `labels` is (N,) true class indices.
-    """
+def _hits(logits_or_pred: ArrayLike, labels: ArrayLike) -> tuple[NDArray[np.bool_], NDArray[np.int64]]:
+    """(N,) whether each prediction is right, and the (N,) labels."""
     scores = np.asarray(logits_or_pred)
     if scores.ndim == 2:
         pred = scores.argmax(axis=1)  # (N,)
@@ -71,7 +67,25 @@ def accuracy(logits_or_pred: ArrayLike, labels: ArrayLike) -> float:
     if pred.shape[0] == 0:
         raise ValueError("accuracy of an empty set is undefined")
     y = _as_labels(labels, pred.shape[0])
-    return float(np.mean(pred.astype(np.int64) == y))
+    return pred.astype(np.int64) == y, y
+
+
+def accuracy(logits_or_pred: ArrayLike, labels: ArrayLike) -> float:
+    """Fraction of samples whose predicted class equals the label, in [0, 1].
+
+    `logits_or_pred` is either (N, C) scores (logits or probabilities; the argmax is the
+    prediction) or (N,) predicted class indices. `labels` is (N,) true class indices.
+    """
+    return float(np.mean(_hits(logits_or_pred, labels)[0]))
+
+
+def accuracy_per_class(logits_or_pred: ArrayLike, labels: ArrayLike, n_classes: int) -> NDArray[np.float64]:
+    """Accuracy within each true class, (n_classes,) in [0, 1]; NaN for a class with no sample."""
+    hits, y = _hits(logits_or_pred, labels)
+    count = np.bincount(y, minlength=n_classes)[:n_classes].astype(np.float64)
+    right = np.bincount(y, weights=hits, minlength=n_classes)[:n_classes]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return right / count
 
 
 # ---------------------------------------------------------------------------------------------

@@ -50,6 +50,11 @@ def test_protocol_reports_every_metric_with_ci(lines_model, lines_folder, lines_
     # rigid synthetic bodies: real bone lengths never change
     assert real["metrics"]["bone_std"][0] == pytest.approx(0.0, abs=1e-6)
     assert 1.0 <= model["metrics"]["inception"][0] <= 2.0
+    # per action: every action's accuracy, averaging (equal counts) to the overall figure
+    for row in report.rows:
+        assert list(row["by_action"]) == ["glide", "crouch"]
+        per_action = [row["by_action"][a][0] for a in ("glide", "crouch")]
+        assert np.mean(per_action) == pytest.approx(row["metrics"]["accuracy"][0])
     cust = report.customization[0]["metrics"]
     assert cust["dist_e"][0] < 0.05 and 0 <= cust["accuracy"][0] <= 100
 
@@ -168,6 +173,16 @@ def test_cli_eval_held_out_row(lines_model, lines_folder, lines_classifier, tmp_
     rows = json.loads(out.read_text())["rows"]
     assert [r["name"] for r in rows] == ["Real motions", "Real, classifier's held-out clips", "lines.pt"]
     assert set(rows[1]["metrics"]) == set(rows[0]["metrics"])
+
+
+def test_cli_eval_by_action_table(lines_model, lines_folder, lines_classifier):
+    args = ["eval", "--model", str(lines_model), "--dataset", str(lines_folder), "--classifier",
+            str(lines_classifier), "--repeats", "2", "--per-action", "10", "--by-action"]
+    res = CliRunner(env={"COLUMNS": "200"}).invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert "accuracy per action" in res.stdout
+    assert any(line.split()[1:2] == ["glide"] for line in res.stdout.splitlines())
+    assert any(line.split()[1:2] == ["crouch"] for line in res.stdout.splitlines())
 
 
 def test_held_out_needs_a_split_that_fits(lines_folder, lines_classifier, tmp_path):

@@ -33,6 +33,16 @@ def test_accuracy_from_logits_and_from_labels():
     assert metrics.accuracy(np.array([1, 0, 0]), labels) == 0.0
 
 
+def test_accuracy_per_class_known_values():
+    logits = np.array([[2.0, 1.0, 0.0], [0.0, 3.0, 0.0], [5.0, -1.0, 0.0], [0.0, 0.0, 1.0]])  # argmax 0, 1, 0, 2
+    labels = np.array([0, 1, 1, 1])
+    per = metrics.accuracy_per_class(logits, labels, 4)
+    np.testing.assert_allclose(per[:3], [1.0, 1 / 3, np.nan])  # class 2 was predicted but never true
+    assert np.isnan(per[3]) and per.shape == (4,)
+    # the mean over samples weights classes by their counts
+    assert metrics.accuracy(logits, labels) == pytest.approx((1 * 1 + 3 * (1 / 3)) / 4)
+
+
 def test_accuracy_rejects_mismatched_lengths():
     with pytest.raises(ValueError):
         metrics.accuracy(np.array([0, 1]), np.array([0, 1, 1]))

@@ -28,6 +28,7 @@ def evaluate(
     samples: Annotated[Optional[list[Path]], typer.Option("--samples", help="Evaluate a samples .npz made elsewhere.")] = None,
     customization: Annotated[bool, typer.Option("--customization", help="Also the end-point protocol (§4.4).")] = False,
     held_out: Annotated[bool, typer.Option("--held-out", help="Also a row for the real clips the classifier never trained on (odmo classifiers).")] = False,
+    by_action: Annotated[bool, typer.Option("--by-action", help="Also print each row's accuracy per action.")] = False,
     json_out: Annotated[Optional[Path], typer.Option("--json", help="Write the full report as JSON here.")] = None,
     data: DataOpt = None, seed: SeedOpt = 0,
 ):
@@ -51,6 +52,8 @@ def evaluate(
         table.add_row(row["name"], *(f"{row['metrics'][k][0]:.{3 if k in ('fid', 'bone_std') else 2}f}"
                                      f" ±{row['metrics'][k][1]:.2f}" for k in METRIC_HEADS))
     console.print(table)
+    if by_action:
+        console.print(_by_action_table(report.rows))
     for c in report.customization:
         m = c["metrics"]
         console.print(f"customization {c['name']}: Acc {m['accuracy'][0]:.2f} ±{m['accuracy'][1]:.2f}, "
@@ -61,6 +64,19 @@ def evaluate(
         with atomic_path(json_out) as tmp:
             tmp.write_text(json.dumps(report.__dict__, indent=2, default=str))
         console.print(f"wrote {json_out}")
+
+
+def _by_action_table(rows: list[dict]) -> Table:
+    table = Table(title="accuracy per action (mean ± 95% CI)")
+    table.add_column("action")
+    for row in rows:
+        table.add_column(row["name"], justify="right")
+    actions = list(dict.fromkeys(a for row in rows for a in row["by_action"]))
+    for a in actions:
+        cells = [f"{row['by_action'][a][0]:.1f} ±{row['by_action'][a][1]:.1f}" if a in row["by_action"] else "-"
+                 for row in rows]
+        table.add_row(a, *cells)
+    return table
 
 
 app.command("evaluate")(evaluate)
