@@ -4,7 +4,8 @@ For each model: `repeats` sets of N generated motions per action; for each set, 
 accuracy, FID against a real set of the same size, Diversity, Multimodality, n-APD and bone-length
 consistency; reported as mean and 95% confidence half-width over the sets. Real motions get the
 same treatment against an independent real set (the "Real motions" row). Real features are
-computed once per evaluation and shared by every model compared.
+computed once per evaluation and shared by every model compared. Every row also holds the accuracy
+within each action (`by_action`), which an overall figure can hide.
 
 With `held_out`, a second reference row scores crops of only the real clips the classifier was
 validated on, never trained on, against the same real sets: what a generator whose motions are as
