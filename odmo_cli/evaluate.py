@@ -82,8 +82,9 @@ def held_out_clips(classifier, clips: ClipSet) -> np.ndarray:
     if not split or len(split.get("val", ())) == 0:
         raise UserError(f"--held-out needs an odmo classifier checkpoint with a validation split; {name} has none")
     val = split["val"]
-    if len(split.get("train", ())) + len(val) != len(clips) or val.max() >= len(clips):
-        raise UserError(f"--held-out: {name} was split over {len(split.get('train', ())) + len(val)} clips, "
+    total = len(split.get("train", ())) + len(val)
+    if total != len(clips) or val.max() >= len(clips):
+        raise UserError(f"--held-out: {name} was split over {total} clips, "
                         f"the dataset has {len(clips)}; use the copy of the data it was trained on")
     missing = [a for c, a in enumerate(clips.manifest.action_names) if not np.any(clips.labels[val] == c)]
     if missing:
