@@ -129,14 +129,15 @@ def real_sets(clips: ClipSet, classifier, cfg: EvalConfig) -> RealSets:
 def set_metrics(logits: np.ndarray, feats: np.ndarray, labels: np.ndarray, real_feats: np.ndarray,
                 motions: np.ndarray | None, parents, real_apd: np.ndarray, rng: np.random.Generator,
                 bone_std: float | None = None) -> dict[str, float]:
+    pred = logits.argmax(axis=1)  # (N,)
     out = {
-        "accuracy": 100 * metrics.accuracy(logits, labels),
+        "accuracy": 100 * metrics.accuracy(pred, labels),
         "fid": metrics.fid_from_features(real_feats, feats),
         "diversity": metrics.diversity(feats, 200, rng=rng),
         "multimodality": metrics.multimodality(feats, labels, 20, rng=rng),
         "inception": metrics.inception_score(_softmax(logits)),
     }
-    per_class = metrics.accuracy_per_class(logits, labels, len(real_apd))  # (C,), NaN where absent
+    per_class = metrics.accuracy_per_class(pred, labels, len(real_apd))  # (C,), NaN where absent
     out.update({f"accuracy/{c}": 100 * float(v) for c, v in enumerate(per_class) if np.isfinite(v)})
     if motions is not None:
         gen_apd = _apd_per_action(motions, labels, len(real_apd))
@@ -154,9 +155,12 @@ def _softmax(logits: np.ndarray) -> np.ndarray:
 
 
 def split_by_action(row: dict, actions) -> None:
-    """Move the per-action accuracies ("accuracy/<index>") from row["metrics"] to row["by_action"]."""
-    keys = [k for k in row["metrics"] if k.startswith("accuracy/")]
-    row["by_action"] = {actions[int(k.split("/")[1])]: row["metrics"].pop(k) for k in keys}
+    """Move the per-action accuracies ("accuracy/<index>") of row["metrics"] and of each of
+    row["per_repeat"] into a "by_action" dict keyed by action name beside them."""
+    for part in [row] + row.get("per_repeat", []):
+        values = part["metrics"] if part is row else part
+        keys = [k for k in values if k.startswith("accuracy/")]
+        part["by_action"] = {actions[int(k.split("/")[1])]: values.pop(k) for k in keys}
 
 
 def summarize(per_repeat: list[dict[str, float]]) -> dict[str, list[float]]:

@@ -55,6 +55,9 @@ def test_protocol_reports_every_metric_with_ci(lines_model, lines_folder, lines_
         assert list(row["by_action"]) == ["glide", "crouch"]
         per_action = [row["by_action"][a][0] for a in ("glide", "crouch")]
         assert np.mean(per_action) == pytest.approx(row["metrics"]["accuracy"][0])
+        for rep in row["per_repeat"]:  # each repeat carries its own, keyed by name too
+            assert not any(k.startswith("accuracy/") for k in rep)
+            assert np.mean([rep["by_action"][a] for a in ("glide", "crouch")]) == pytest.approx(rep["accuracy"])
     cust = report.customization[0]["metrics"]
     assert cust["dist_e"][0] < 0.05 and 0 <= cust["accuracy"][0] <= 100
 
