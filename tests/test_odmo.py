@@ -111,6 +111,9 @@ def test_ablation_switches_change_the_total():
     assert losses.total_loss(terms, cfg).item() == 12.0
     assert losses.total_loss(terms, tiny_config(use_es=False)).item() == 13.0
     assert losses.total_loss(terms, tiny_config(use_traj=False, use_cons=False)).item() == 3.0
+    # the release's pair sum weighs every reconstruction term twice, never L_es
+    assert losses.total_loss(terms, tiny_config(recon_weight=2.0)).item() == 22.0
+    assert losses.total_loss(terms, tiny_config(recon_weight=2.0, use_traj=False)).item() == 14.0
 
 
 # -- model -----------------------------------------------------------------------------------
@@ -293,9 +296,11 @@ def test_cli_train_and_info(tmp_path):
     runner = CliRunner()
     out = tmp_path / "m.pt"
     res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--epochs", "1",
-                              "--batch-size", "8", "--out", str(out), "--json"])
+                              "--batch-size", "8", "--out", str(out), "--json", "--sigma2", "0.0025",
+                              "--recon-weight", "2"])
     assert res.exit_code == 0, res.output
-    assert out.is_file()
+    config = torch.load(out, weights_only=True)["config"]
+    assert config["sigma2"] == 0.0025 and config["recon_weight"] == 2.0
     res = runner.invoke(app, ["info", str(out), "--json"])
     assert res.exit_code == 0 and '"kind": "odmo"' in res.stdout and '"weights": "float32"' in res.stdout
 
@@ -305,6 +310,8 @@ def test_cli_train_and_info(tmp_path):
     (["--epochs", "0"], "epochs and batch size must be positive"),
     (["--model", "gan"], "unknown model 'gan'; valid: odmo, classifier"),
     (["--resume", "missing.pt"], "checkpoint not found"),
+    (["--sigma2", "0"], "--sigma2 must be a positive number, got 0.0"),
+    (["--recon-weight", "-1"], "--recon-weight must be a positive number, got -1.0"),
     (["--same-class-fraction", "1.5"], "--same-class-fraction must be in [0, 1] (or -1: independent pairs), got 1.5"),
 ])
 def test_cli_train_bad_input(tmp_path, args, message):

@@ -29,6 +29,8 @@ def train(
     tf_epochs: Annotated[int, typer.Option("--tf-epochs", help="Teacher forcing decays 1 -> 0.3 over these epochs (0: all).")] = 0,
     ablate: Annotated[Optional[list[str]], typer.Option("--ablate", help="Drop a part: es, traj, cons, end-point (repeatable).")] = None,
     same_class: Annotated[Optional[float], typer.Option("--same-class-fraction", help="Share of same-action pairs (default 0.5, as the authors' release; -1: independent random pairs).")] = None,
+    sigma2: Annotated[Optional[float], typer.Option("--sigma2", help="ODMO: prior variance of the code posterior (eq. 1; default 0.05, the paper's; the release's code gives 0.0025).")] = None,
+    recon_weight: Annotated[Optional[float], typer.Option("--recon-weight", help="ODMO: weight of the reconstruction terms against L_es (default 1: means over clips; 2: the release's sum over each pair).")] = None,
     checkpoint_every: Annotated[int, typer.Option("--checkpoint-every", help="Epochs between checkpoints.")] = 25,
     val_every: Annotated[int, typer.Option("--val-every", help="Epochs between validation losses.")] = 10,
     out: Annotated[Optional[Path], typer.Option("--out", help="Checkpoint to write (default <model>.pt).")] = None,
@@ -50,6 +52,7 @@ def train(
         return _train_classifier(dataset, data, epochs, batch_size, lr, out, seed, threads, as_json)
     if model == "a2m":
         odmo_only = {"--ablate": ablate, "--same-class-fraction": same_class, "--lr-final": lr_final,
+                     "--sigma2": sigma2, "--recon-weight": recon_weight,
                      "--tf-epochs": tf_epochs or None, "--device": None if device == "cpu" else device}
         for flag, value in odmo_only.items():
             if value is not None:
@@ -74,8 +77,12 @@ def train(
     bad = [a for a in ablate or [] if a not in ABLATIONS]
     if bad:
         raise UserError(f"unknown ablation {bad[0]!r}; valid: {', '.join(ABLATIONS)}")
+    for flag, value in {"--sigma2": sigma2, "--recon-weight": recon_weight}.items():
+        if value is not None and not value > 0:
+            raise UserError(f"{flag} must be a positive number, got {value}")
     overrides = {"use_es": "es" not in (ablate or []), "use_traj": "traj" not in (ablate or []),
                  "use_cons": "cons" not in (ablate or []), "use_end_point": "end-point" not in (ablate or [])}
+    overrides.update({k: v for k, v in {"sigma2": sigma2, "recon_weight": recon_weight}.items() if v is not None})
     tc = TrainConfig(epochs=epochs, batch_size=batch_size, lr=lr, lr_final=lr if lr_final is None else lr_final,
                      tf_epochs=tf_epochs, checkpoint_every=checkpoint_every, val_every=val_every,
                      seed=seed, threads=threads, same_class_fraction=0.5 if same_class is None else same_class)

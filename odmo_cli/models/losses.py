@@ -83,10 +83,9 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
 def total_loss(terms: dict[str, torch.Tensor], cfg) -> torch.Tensor:
     """Eq. 5 with the ablation switches. Without L_es, ODMO "becomes a classic VAE" (§4.2.4):
     the contrastive and sigma2 terms are replaced by the KL to N(0, I)."""
-    loss = terms["mre"]
-    loss = loss + (terms["es"] if cfg.use_es else terms["vae"])
+    recon = terms["mre"]
     if cfg.use_traj:
-        loss = loss + terms["r"]
+        recon = recon + terms["r"]
     if cfg.use_cons:
-        loss = loss + terms["cons"]
-    return loss
+        recon = recon + terms["cons"]
+    return cfg.recon_weight * recon + (terms["es"] if cfg.use_es else terms["vae"])

@@ -28,6 +28,9 @@ class ODMOConfig:
     alpha: float = 5.0  # contrastive margin
     sigma2: float = 0.05  # prior variance of the posterior (eq. 1)
     same_class_deadzone: float = 0.25  # relu(d^2 - 0.25) for same-class pairs, as in the release
+    # weight of L_r, L_mre and L_cons against L_es. Each term here is a mean over clips; the
+    # authors' release sums the two clips of a pair (as eq. 5 reads for a pair), which is 2.
+    recon_weight: float = 1.0
     use_es: bool = True
     use_traj: bool = True
     use_cons: bool = True
