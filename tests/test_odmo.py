@@ -102,6 +102,8 @@ def test_trajectory_loss_position_vs_velocity_known_values():
     assert vel == pytest.approx(T * 0.1 ** 2 / 3)
     with pytest.raises(ValueError, match="traj_loss"):
         tiny_config(traj_loss="angles")
+    with pytest.raises(ValueError, match="sigma2 and recon_weight must be positive"):
+        tiny_config(sigma2=0.0)
 
 
 def test_ablation_switches_change_the_total():

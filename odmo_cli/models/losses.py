@@ -3,6 +3,7 @@
 The paper writes squared norms; the authors' release averages over coordinates and weights the
 vertical coordinate x5, which sets the balance between reconstruction and the contrastive term
 that produced the paper's numbers. We follow the release's scale (up_weight in the config).
+Our terms are means over clips; the release sums a pair's two clips, which is recon_weight = 2.
 """
 
 from __future__ import annotations

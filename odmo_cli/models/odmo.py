@@ -26,7 +26,7 @@ class ODMOConfig:
     use_end_point: bool = True  # False trains the paper's -r_e variant
     # losses (eq. 5) and their switches for the ablations -L_es, -L_traj, -L_cons
     alpha: float = 5.0  # contrastive margin
-    sigma2: float = 0.05  # prior variance of the posterior (eq. 1)
+    sigma2: float = 0.05  # prior variance of the posterior (eq. 1); the release's code amounts to 0.0025
     same_class_deadzone: float = 0.25  # relu(d^2 - 0.25) for same-class pairs, as in the release
     # weight of L_r, L_mre and L_cons against L_es. Each term here is a mean over clips; the
     # authors' release sums the two clips of a pair (as eq. 5 reads for a pair), which is 2.
@@ -52,6 +52,8 @@ class ODMOConfig:
     def __post_init__(self):
         if self.traj_loss not in ("position", "velocity"):
             raise ValueError(f"traj_loss must be position or velocity, got {self.traj_loss!r}")
+        if not (self.sigma2 > 0 and self.recon_weight > 0):
+            raise ValueError(f"sigma2 and recon_weight must be positive, got {self.sigma2} and {self.recon_weight}")
 
 
 def condition(onehot: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
