@@ -77,12 +77,13 @@ def train(
     bad = [a for a in ablate or [] if a not in ABLATIONS]
     if bad:
         raise UserError(f"unknown ablation {bad[0]!r}; valid: {', '.join(ABLATIONS)}")
-    for flag, value in {"--sigma2": sigma2, "--recon-weight": recon_weight}.items():
+    scales = {"sigma2": sigma2, "recon_weight": recon_weight}  # ODMOConfig fields, given as --sigma2, --recon-weight
+    for key, value in scales.items():
         if value is not None and not value > 0:
-            raise UserError(f"{flag} must be a positive number, got {value}")
+            raise UserError(f"--{key.replace('_', '-')} must be a positive number, got {value}")
     overrides = {"use_es": "es" not in (ablate or []), "use_traj": "traj" not in (ablate or []),
                  "use_cons": "cons" not in (ablate or []), "use_end_point": "end-point" not in (ablate or [])}
-    overrides.update({k: v for k, v in {"sigma2": sigma2, "recon_weight": recon_weight}.items() if v is not None})
+    overrides.update({k: v for k, v in scales.items() if v is not None})
     tc = TrainConfig(epochs=epochs, batch_size=batch_size, lr=lr, lr_final=lr if lr_final is None else lr_final,
                      tf_epochs=tf_epochs, checkpoint_every=checkpoint_every, val_every=val_every,
                      seed=seed, threads=threads, same_class_fraction=0.5 if same_class is None else same_class)
