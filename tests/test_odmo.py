@@ -184,6 +184,12 @@ def test_decoder_matches_the_step_by_step_definition(pattern):
     fast = gen(trajectory, cond, target, teacher)
     slow = _naive_decoder(gen, trajectory, cond, target, teacher)
     assert torch.allclose(fast, slow, atol=1e-5)
+    # and so do the gradients, which the precomputed per-step inputs must route back unchanged
+    weights = torch.randn(B, T, P)
+    grads = [torch.autograd.grad((out * weights).sum(), list(gen.parameters())) for out in (fast, slow)]
+    for g_fast, g_slow in zip(*grads):
+        assert torch.allclose(g_fast, g_slow, atol=1e-5)
+    assert any(g.abs().sum() > 0 for g in grads[0])
 
 
 # -- training --------------------------------------------------------------------------------

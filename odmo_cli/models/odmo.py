@@ -110,7 +110,9 @@ class MotionGenerator(nn.Module):
 
     Each decoder step sees [previous pose, outer(c, z), t/T]. The parts of its input embedding
     that do not depend on the previous pose are computed once for all steps, and so are the
-    teacher-forced inputs. The decoder is two LSTMCells: a 2-layer LSTM stepped one frame at a time.
+    teacher-forced inputs; both are unbound into per-step views once, because indexing a (B, T, H)
+    tensor inside the loop makes every step's backward fill and add a full (B, T, H) gradient.
+    The decoder is two LSTMCells: a 2-layer LSTM stepped one frame at a time.
     """
 
     def __init__(self, cfg: ODMOConfig):
@@ -139,19 +141,19 @@ class MotionGenerator(nn.Module):
         w_prev, w_rest = self.embed.weight[:, :p], self.embed.weight[:, p:]
         t_frac = torch.arange(1, T + 1, dtype=cond.dtype, device=cond.device) / T  # (T,)
         fixed = F.linear(cond, w_rest[:, :-1], self.embed.bias)  # (B, H)
-        fixed = fixed[:, None, :] + t_frac[None, :, None] * w_rest[:, -1]  # (B, T, H)
+        fixed = (fixed[:, None, :] + t_frac[None, :, None] * w_rest[:, -1]).unbind(1)  # T x (B, H)
         if target is not None and teacher is not None and bool(teacher.any()):
             prev_real = torch.cat([torch.zeros_like(target[:, :1]), target[:, :-1]], dim=1)  # (B, T, P)
-            real_part = F.linear(prev_real, w_prev)  # (B, T, H): all teacher-forced inputs at once
+            real_part = F.linear(prev_real, w_prev).unbind(1)  # T x (B, H): all teacher-forced inputs
         else:
             teacher = None
         prev = trajectory.new_zeros(B, p)
         outputs = []
         for t in range(T):
             if teacher is not None and teacher[t]:
-                x = real_part[:, t] + fixed[:, t]
+                x = real_part[t] + fixed[t]
             else:
-                x = F.linear(prev, w_prev) + fixed[:, t]
+                x = F.linear(prev, w_prev) + fixed[t]
             state[0] = self.cell0(self.act(x), state[0])
             state[1] = self.cell1(state[0][0], state[1])
             prev = self.out(state[1][0])  # (B, P)
