@@ -2,7 +2,8 @@
 
 Figures: sampling throughput (motions/s for n = 1000 after load), model load time, end-to-end
 `odmo sample --n 20` wall time (a fresh process), peak RSS of `odmo sample --n 10000`, training
-s/epoch and clips/s on HumanAct12 and CMU MoCap, and the evaluation protocol's wall time.
+s/epoch and clips/s on HumanAct12 and CMU MoCap with the arithmetic they imply (GFLOP per clip,
+GFLOP/s) beside this machine's float32 matrix-multiply rate, and the evaluation protocol's wall time.
 Without a trained model the generator figures use a randomly initialised network of the same
 shapes (speed does not depend on the weights) and say so.
 """
@@ -120,6 +121,49 @@ def bench_end_to_end(model_path: Path, runs: int, note: str, folder: Path) -> li
             Figure("peak RSS, `odmo sample --n 10000`", "MiB", rss, note)]
 
 
+def _lstm_flops(lstm: torch.nn.LSTM, x: torch.Tensor) -> int:
+    """Matrix-product FLOPs of an nn.LSTM's forward on x (B, T, I): per layer and step, the four
+    gates' products with input and hidden state, 2 * 4H * (I + H) per sequence."""
+    b, t = (x.shape[0], x.shape[1]) if lstm.batch_first else (x.shape[1], x.shape[0])
+    h = lstm.hidden_size
+    sizes = [lstm.input_size] + [h] * (lstm.num_layers - 1)
+    return sum(2 * b * t * 4 * h * (i + h) for i in sizes)
+
+
+def count_flops(fn: Callable[[], object], root: torch.nn.Module) -> int:
+    """FLOPs of fn(), a forward and backward through root's modules, counted by torch's
+    FlopCounterMode. That counter does not see nn.LSTM's fused CPU kernel: an nn.LSTM call during
+    which it counted nothing adds its matrix products from its shapes, x3 for the backward (input
+    and weight gradients), as the counter does for the layers it sees."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    counter = FlopCounterMode(display=False)
+    unseen, before = [0], {}
+
+    def pre_hook(module, _):
+        before[id(module)] = counter.get_total_flops()
+
+    def hook(module, inputs, _):
+        if counter.get_total_flops() == before.pop(id(module)):
+            unseen[0] += 3 * _lstm_flops(module, inputs[0])
+
+    lstms = [m for m in root.modules() if isinstance(m, torch.nn.LSTM)]
+    handles = [m.register_forward_pre_hook(pre_hook) for m in lstms] + [m.register_forward_hook(hook) for m in lstms]
+    try:
+        with counter:
+            fn()
+    finally:
+        for handle in handles:
+            handle.remove()
+    return counter.get_total_flops() + unseen[0]
+
+
+def matmul_rate(runs: int, n: int = 2048) -> list[float]:
+    """GFLOP/s of an n x n float32 matrix product: what this machine's cores sustain at best."""
+    a, b = torch.randn(n, n), torch.randn(n, n)
+    return [2 * n ** 3 / t / 1e9 for t in _timed(lambda: a @ b, runs)]
+
+
 def bench_training(dataset: str, data, runs: int) -> list[Figure]:
     from odmo_cli.data.locate import resolve
     from odmo_cli.data.readers import read_dataset
@@ -130,10 +174,15 @@ def bench_training(dataset: str, data, runs: int) -> list[Figure]:
     tc = TrainConfig(epochs=runs + 1, batch_size=256, val_every=0, checkpoint_every=0, tf_start=0.65, tf_end=0.65)
     with tempfile.TemporaryDirectory() as tmp:
         trainer = Trainer(clips, model_config_for(clips), tc, Path(tmp) / "bench.pt")
-        logs = [trainer.train_epoch() for _ in range(runs + 1)][1:]
+        flops = count_flops(trainer.train_epoch, trainer.model)  # the warm-up epoch, not timed
+        logs = [trainer.train_epoch() for _ in range(runs)]
     note = f"{len(trainer.train_idx)} pairs per epoch, batch 256 pairs, teacher forcing 0.65 (mid-schedule)"
+    per_clip = flops / (2 * len(trainer.train_idx)) / 1e9
     return [Figure(f"training s/epoch, {dataset} (T = {manifest.clip_length})", "s", [g.seconds for g in logs], note),
-            Figure(f"training clips/s, {dataset}", "clips/s", [g.clips_per_s for g in logs], note)]
+            Figure(f"training clips/s, {dataset}", "clips/s", [g.clips_per_s for g in logs], note),
+            Figure(f"training GFLOP per clip (forward + backward), {dataset}", "GFLOP", [per_clip],
+                   "matrix products counted in one epoch"),
+            Figure(f"training arithmetic rate, {dataset}", "GFLOP/s", [flops / g.seconds / 1e9 for g in logs], note)]
 
 
 def bench_evaluation(model: str | None, data, runs: int) -> list[Figure]:
@@ -167,6 +216,10 @@ def run_bench(model: str | None = None, data=None, runs: int = 5, only: tuple[st
         if want("end-to-end"):
             say("end to end")
             report.figures += bench_end_to_end(path, runs, note, folder)
+        if want("training"):
+            say("matrix multiply")
+            report.figures.append(Figure("float32 matrix multiply (2048 x 2048)", "GFLOP/s", matmul_rate(runs),
+                                         "this machine's practical peak for the training figures"))
         for dataset in ("humanact12", "cmu_mocap"):
             if want("training"):
                 say(f"training {dataset}")

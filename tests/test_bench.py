@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import json
 
+import torch
 from typer.testing import CliRunner
 
+from odmo_cli.bench import count_flops, matmul_rate
 from odmo_cli.cli import app
 
 
@@ -32,3 +34,29 @@ def test_bench_unknown_model(tmp_path):
     res = CliRunner().invoke(app, ["bench", "--model", str(tmp_path / "missing.pt"), "--only", "sampling"])
     assert res.exit_code == 2
     assert "give a checkpoint file or a shipped name (humanact12, cmu)" in res.stderr
+
+
+def test_count_flops_known_values():
+    """An LSTM (2 layers) and a linear head, forward and backward, against the count by hand."""
+    torch.manual_seed(0)
+    B, T, I, H, O = 5, 7, 4, 8, 3
+    lstm, head = torch.nn.LSTM(I, H, num_layers=2, batch_first=True), torch.nn.Linear(H, O)
+    root = torch.nn.ModuleList([lstm, head])
+    x = torch.randn(B, T, I)
+
+    def step():
+        y, _ = lstm(x)
+        head(y).sum().backward()
+
+    per_step = 2 * 4 * H * (I + H) + 2 * 4 * H * (H + H)  # both layers' gate products
+    expected = 3 * B * T * (per_step + 2 * H * O)  # forward, and backward's two products per layer
+    assert count_flops(step, root) == expected
+    # a linear layer alone: the counter's own count, nothing added; x needs no gradient, so the
+    # backward is the weight's product only
+    lin = torch.nn.Linear(I, O)
+    assert count_flops(lambda: lin(x).sum().backward(), lin) == 2 * 2 * B * T * I * O
+
+
+def test_matmul_rate_is_positive_per_run():
+    rates = matmul_rate(2, n=64)
+    assert len(rates) == 2 and all(r > 0 for r in rates)
