@@ -134,7 +134,8 @@ def count_flops(fn: Callable[[], object], root: torch.nn.Module) -> int:
     """FLOPs of fn(), a forward and backward through root's modules, counted by torch's
     FlopCounterMode. That counter does not see nn.LSTM's fused CPU kernel: an nn.LSTM call during
     which it counted nothing adds its matrix products from its shapes, x3 for the backward (input
-    and weight gradients), as the counter does for the layers it sees."""
+    and weight gradients), as the counter does for the layers it sees. For an LSTM whose input needs
+    no gradient that overstates its first layer's backward (in ODMO: the encoder, under 1% of a step)."""
     from torch.utils.flop_counter import FlopCounterMode
 
     counter = FlopCounterMode(display=False)
