@@ -221,8 +221,7 @@ def run_bench(model: str | None = None, data=None, runs: int = 5, only: tuple[st
             say("matrix multiply")
             report.figures.append(Figure("float32 matrix multiply (2048 x 2048)", "GFLOP/s", matmul_rate(runs),
                                          "this machine's practical peak for the training figures"))
-        for dataset in ("humanact12", "cmu_mocap"):
-            if want("training"):
+            for dataset in ("humanact12", "cmu_mocap"):
                 say(f"training {dataset}")
                 try:
                     report.figures += bench_training(dataset, data, min(runs, 3))
