@@ -56,6 +56,8 @@ class RealSets:
     logits: list[np.ndarray]
     apd: np.ndarray  # (C,) per-action APD of the first real set
     bone_std: list[float]
+    speed: list[np.ndarray]  # repeats + 1 sets of (C*N,) body speeds (metrics.body_speed)
+    amplitude: list[np.ndarray]  # the same for metrics.body_amplitude
 
 
 def shipped_classifier(dataset: str) -> Path | None:
@@ -101,7 +103,8 @@ def evaluate_held_out(clips: ClipSet, val: np.ndarray, classifier, real: RealSet
     for r in range(cfg.repeats):
         motions, labels = real_crops(held, n, rng)  # (C*n, T, J, 3)
         logits, feats = classifier.predict(motions)
-        rows.append(set_metrics(logits, feats, labels, real.features[r + 1], motions, parents, real.apd, rng))
+        rows.append(set_metrics(logits, feats, labels, real.features[r + 1], motions, parents, real.apd, rng,
+                                real=real))
     return {"name": "Real, classifier's held-out clips", "metrics": summarize(rows), "per_repeat": rows,
             "clips": int(len(val))}
 
@@ -114,21 +117,36 @@ def real_sets(clips: ClipSet, classifier, cfg: EvalConfig) -> RealSets:
     rng = np.random.default_rng(cfg.seed + 10_000)
     n = cfg.n_for(clips.manifest.name)
     parents = clips.manifest.skeleton.parents
-    feats, logits, bone, apd, labels = [], [], [], None, None
+    feats, logits, bone, apd, labels, speed, amplitude = [], [], [], None, None, [], []
     for r in range(cfg.repeats + 1):
         motions, labels = real_crops(clips, n, rng)
         lo, fe = classifier.predict(motions)
         feats.append(fe)
         logits.append(lo)
         bone.append(metrics.bone_length_consistency(motions, parents))
+        speed.append(metrics.body_speed(motions))
+        amplitude.append(metrics.body_amplitude(motions))
         if r == 0:
             apd = _apd_per_action(motions, labels, len(clips.manifest.actions))
-    return RealSets(feats, labels, logits, apd, bone)
+    return RealSets(feats, labels, logits, apd, bone, speed, amplitude)
+
+
+def damping_metrics(speed: np.ndarray, amplitude: np.ndarray, labels: np.ndarray, real: RealSets) -> dict[str, float]:
+    """Speed and amplitude ratios against the first real set: overall (mean over actions) and
+    per action ("speed/<index>", "amplitude/<index>"). An action whose real motions do not move
+    about the root has no ratio (the key is absent), and with none left neither has the overall one."""
+    out = {}
+    for key, values, ref in (("speed", speed, real.speed[0]), ("amplitude", amplitude, real.amplitude[0])):
+        ratios = {c: v for c, v in metrics.class_ratios(values, labels, ref, real.labels).items() if np.isfinite(v)}
+        if ratios:
+            out[key] = float(np.mean(list(ratios.values())))
+        out.update({f"{key}/{c}": v for c, v in ratios.items()})
+    return out
 
 
 def set_metrics(logits: np.ndarray, feats: np.ndarray, labels: np.ndarray, real_feats: np.ndarray,
                 motions: np.ndarray | None, parents, real_apd: np.ndarray, rng: np.random.Generator,
-                bone_std: float | None = None) -> dict[str, float]:
+                bone_std: float | None = None, real: RealSets | None = None) -> dict[str, float]:
     pred = logits.argmax(axis=1)  # (N,)
     out = {
         "accuracy": 100 * metrics.accuracy(pred, labels),
@@ -143,6 +161,8 @@ def set_metrics(logits: np.ndarray, feats: np.ndarray, labels: np.ndarray, real_
         gen_apd = _apd_per_action(motions, labels, len(real_apd))
         out["n_apd"] = float(np.mean(gen_apd / real_apd))
         out["bone_std"] = metrics.bone_length_consistency(motions, parents)
+        if real is not None:
+            out.update(damping_metrics(metrics.body_speed(motions), metrics.body_amplitude(motions), labels, real))
     elif bone_std is not None:
         out["n_apd"] = 1.0
         out["bone_std"] = bone_std
@@ -154,13 +174,18 @@ def _softmax(logits: np.ndarray) -> np.ndarray:
     return e / e.sum(1, keepdims=True)
 
 
+BY_ACTION = {"accuracy": "by_action", "speed": "speed_by_action", "amplitude": "amplitude_by_action"}
+
+
 def split_by_action(row: dict, actions) -> None:
-    """Move the per-action accuracies ("accuracy/<index>") of row["metrics"] and of each of
-    row["per_repeat"] into a "by_action" dict keyed by action name beside them."""
+    """Move the per-action figures ("accuracy/<index>", "speed/<index>", "amplitude/<index>") of
+    row["metrics"] and of each of row["per_repeat"] into dicts keyed by action name beside them:
+    "by_action" (accuracy), "speed_by_action" and "amplitude_by_action"."""
     for part in [row] + row.get("per_repeat", []):
         values = part["metrics"] if part is row else part
-        keys = [k for k in values if k.startswith("accuracy/")]
-        part["by_action"] = {actions[int(k.split("/")[1])]: values.pop(k) for k in keys}
+        for metric, home in BY_ACTION.items():
+            keys = [k for k in values if k.startswith(metric + "/")]
+            part[home] = {actions[int(k.split("/")[1])]: values.pop(k) for k in keys}
 
 
 def summarize(per_repeat: list[dict[str, float]]) -> dict[str, list[float]]:
@@ -171,8 +196,10 @@ def summarize(per_repeat: list[dict[str, float]]) -> dict[str, list[float]]:
 
 def evaluate_real(real: RealSets, cfg: EvalConfig, parents) -> dict:
     rng = np.random.default_rng(cfg.seed + 20_000)
-    rows = [set_metrics(real.logits[r + 1], real.features[r + 1], real.labels, real.features[0], None,
-                        parents, real.apd, rng, real.bone_std[r + 1]) for r in range(cfg.repeats)]
+    rows = [{**set_metrics(real.logits[r + 1], real.features[r + 1], real.labels, real.features[0], None,
+                           parents, real.apd, rng, real.bone_std[r + 1]),
+             **damping_metrics(real.speed[r + 1], real.amplitude[r + 1], real.labels, real)}
+            for r in range(cfg.repeats)]
     return {"name": "Real motions", "metrics": summarize(rows), "per_repeat": rows}
 
 
@@ -191,7 +218,7 @@ def evaluate_model(loaded, classifier, real: RealSets, cfg: EvalConfig, progress
         labels = np.array([loaded.actions.index(a) for a in batch.actions])
         logits, feats = classifier.predict(batch.motions)
         rows.append(set_metrics(logits, feats, labels, real.features[r + 1], batch.motions, parents,
-                                real.apd, rng))
+                                real.apd, rng, real=real))
         seeds.append(seed)
         if progress:
             progress(r + 1)
@@ -204,18 +231,17 @@ def evaluate_model(loaded, classifier, real: RealSets, cfg: EvalConfig, progress
 def evaluate_samples(path: Path, classifier, real: RealSets, actions: list[str], cfg: EvalConfig,
                      parents) -> dict:
     """Motions produced elsewhere (a samples .npz) against the same real sets: one set, no CI."""
-    try:
-        data = np.load(path, allow_pickle=False)
-        motions, names = data["motions"].astype(np.float32), [str(a) for a in data["actions"]]
-    except (OSError, KeyError, ValueError) as exc:
-        raise UserError(f"cannot read samples {path}: {type(exc).__name__} (need motions and actions arrays)") from None
+    from odmo_cli.io import read_samples
+
+    data = read_samples(path)
+    motions, names = data["motions"].astype(np.float32), [str(a) for a in data["actions"]]
     unknown = sorted(set(names) - set(actions))
     if unknown:
         raise UserError(f"samples {path} have actions {', '.join(unknown)} not in the dataset ({', '.join(actions)})")
     labels = np.array([actions.index(a) for a in names])
     logits, feats = classifier.predict(motions)
     row = set_metrics(logits, feats, labels, real.features[1], motions, parents, real.apd,
-                      np.random.default_rng(cfg.seed))
+                      np.random.default_rng(cfg.seed), real=real)
     return {"name": path.name, "metrics": {k: [v, 0.0] for k, v in row.items()}, "per_repeat": [row]}
 
 

@@ -17,6 +17,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from odmo_cli import metrics
 from odmo_cli.data.dataset import MotionDataset, pair_indices, split_indices
 from odmo_cli.data.readers import ClipSet
 from odmo_cli.errors import TrainingError, UserError
@@ -36,6 +37,7 @@ class TrainConfig:
     tf_start: float = 1.0
     tf_end: float = 0.3
     tf_epochs: int = 0  # teacher forcing decays linearly over this many epochs (0: all epochs)
+    tf_per: str = "step"  # one teacher-forcing coin per time step for the batch (the release), or per "clip" and step
     pairs_per_epoch: int = 0  # 0: as many pairs as training clips
     same_class_fraction: float = 0.5  # the release pairs each clip with its class half the time; < 0: independent pairs
     val_fraction: float = 0.1
@@ -52,6 +54,8 @@ class TrainConfig:
             raise UserError(f"learning rates must be positive, got {self.lr} and {self.lr_final}")
         if not (0 <= self.tf_end <= 1 and 0 <= self.tf_start <= 1):
             raise UserError("teacher-forcing rates must be in [0, 1]")
+        if self.tf_per not in ("step", "clip"):
+            raise UserError(f"teacher forcing per step or clip, got {self.tf_per!r}")
         if self.same_class_fraction > 1:
             raise UserError(f"--same-class-fraction must be in [0, 1], got {self.same_class_fraction}")
 
@@ -172,7 +176,8 @@ class Trainer:
         for b in range(0, n_pairs, tc.batch_size):
             chunk = pairs[b:b + tc.batch_size]
             motion, lab = self.data.batch(np.concatenate([chunk[:, 0], chunk[:, 1]]))  # (2B, T, J, 3)
-            teacher = torch.rand(self.cfg.length, generator=self.torch_gen) < teacher_rate
+            shape = (len(motion), self.cfg.length) if tc.tf_per == "clip" else (self.cfg.length,)
+            teacher = torch.rand(shape, generator=self.torch_gen) < teacher_rate
             out = model(motion, lab, generator=self.torch_gen, teacher=teacher)
             terms = odmo_terms(out, motion, lab, self.cfg)
             loss = total_loss(terms, self.cfg)
@@ -225,16 +230,42 @@ def crops_from_start(clips: ClipSet, idx: np.ndarray, length: int) -> tuple[torc
 
 @torch.no_grad()
 def reconstruction_error(model: ODMO, clips: ClipSet, idx: np.ndarray, batch: int = 512) -> dict[str, float]:
-    """Mean per-joint position error (dataset units) and end-point error, decoding mean codes."""
+    """Free-running reconstruction of clips[idx] from their mean codes and real end points (as at
+    sampling time, no teacher forcing): mean per-joint position error and end-point error (dataset
+    units), and the body's speed and amplitude over the clips' own (metrics.damping_ratios)."""
     model.eval()
-    joint_err, end_err = [], []
+    joint_err, end_err, recons, reals, labs = [], [], [], [], []
     for b in range(0, len(idx), batch):
         motion, labels = crops_from_start(clips, idx[b:b + batch], model.cfg.length)
         mu, _ = model.encode(motion)
         _, recon = model.decode(mu, labels, motion[:, -1, 0])
         joint_err.append((recon - motion).norm(dim=-1).mean(dim=(1, 2)))
         end_err.append((recon[:, -1, 0] - motion[:, -1, 0]).norm(dim=-1))
-    return {"mpjpe": float(torch.cat(joint_err).mean()), "end_error": float(torch.cat(end_err).mean())}
+        recons.append(recon.numpy())
+        reals.append(motion.numpy())
+        labs.append(labels.numpy())
+    labs = np.concatenate(labs)
+    damp = metrics.damping_ratios(np.concatenate(recons), labs, np.concatenate(reals), labs)
+    return {"mpjpe": float(torch.cat(joint_err).mean()), "end_error": float(torch.cat(end_err).mean()),
+            "speed": damp["speed"], "amplitude": damp["amplitude"]}
+
+
+@torch.no_grad()
+def noise_ceiling(model: ODMO, clips: ClipSet, idx: np.ndarray, seed: int, batch: int = 512) -> dict[str, float]:
+    """metrics.noise_ceiling of the model's own posterior over clips[idx] (canonical crops): the
+    speed and amplitude that the best squared-error decoder could reach under that noise."""
+    model.eval()
+    mus, stds, motions, labels = [], [], [], []
+    for b in range(0, len(idx), batch):
+        motion, lab = crops_from_start(clips, idx[b:b + batch], model.cfg.length)
+        mu, logvar = model.encode(motion)
+        mus.append(mu.numpy())
+        stds.append(torch.exp(0.5 * logvar).numpy())
+        motions.append(motion.numpy())
+        labels.append(lab.numpy())
+    c = metrics.noise_ceiling(np.concatenate(mus), np.concatenate(stds), np.concatenate(motions),
+                              np.concatenate(labels), np.random.default_rng(seed), draws=2)
+    return {"speed": c["speed"], "amplitude": c["amplitude"]}
 
 
 def _np_state(rng: np.random.Generator) -> dict:
@@ -277,6 +308,7 @@ def finish(trainer: Trainer) -> dict:
     report = {
         "held_out_clips": int(len(held)),
         **{f"held_out_{k}": v for k, v in reconstruction_error(model, clips, held).items()},
+        **{f"ceiling_{k}": v for k, v in noise_ceiling(model, clips, trainer.train_idx, trainer.tc.seed).items()},
         **separation(bank["codes"].numpy(), bank["labels"].numpy(), held_bank["codes"].numpy(),
                      held_bank["labels"].numpy(), trainer.cfg.n_classes),
         "alpha": trainer.cfg.alpha,

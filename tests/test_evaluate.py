@@ -39,7 +39,9 @@ def test_protocol_reports_every_metric_with_ci(lines_model, lines_folder, lines_
     assert [r["name"] for r in report.rows] == ["Real motions", "lines.pt"]
     real, model = report.rows
     for row in report.rows:
+        # rigid bodies: no motion about the root to compare with, so no speed or amplitude ratio
         assert set(row["metrics"]) == {"accuracy", "fid", "diversity", "multimodality", "inception", "n_apd", "bone_std"}
+        assert row["speed_by_action"] == {} and row["amplitude_by_action"] == {}
         assert len(row["per_repeat"]) == 3
         for mean, half in row["metrics"].values():
             assert np.isfinite(mean) and half >= 0
@@ -198,3 +200,24 @@ def test_held_out_needs_a_split_that_fits(lines_folder, lines_classifier, tmp_pa
     fewer = replace(clips, motions=clips.motions[:-1], labels=clips.labels[:-1])
     with pytest.raises(UserError, match=f"split over {len(clips)} clips, the dataset has {len(clips) - 1}"):
         held_out_clips(load_classifier(lines_classifier), fewer)
+
+
+def test_damping_metrics_against_the_first_real_set():
+    from odmo_cli.evaluate import RealSets, damping_metrics, split_by_action
+
+    labels = np.array([0, 0, 1, 1])
+    real = RealSets(features=[], labels=labels, logits=[], apd=np.ones(2), bone_std=[],
+                    speed=[np.array([1.0, 1.0, 2.0, 2.0])], amplitude=[np.array([0.2, 0.4, 1.0, 1.0])])
+    out = damping_metrics(np.array([0.5, 0.5, 2.0, 2.0]), np.array([0.3, 0.3, 0.5, 0.5]), labels, real)
+    assert out["speed/0"] == pytest.approx(0.5) and out["speed/1"] == pytest.approx(1.0)
+    assert out["speed"] == pytest.approx(0.75)
+    assert out["amplitude/0"] == pytest.approx(1.0) and out["amplitude/1"] == pytest.approx(0.5)
+    row = {"metrics": {k: [v, 0.0] for k, v in out.items()}, "per_repeat": [dict(out)]}
+    split_by_action(row, ["kick", "wave"])
+    assert row["speed_by_action"] == {"kick": [0.5, 0.0], "wave": [1.0, 0.0]}
+    assert row["per_repeat"][0]["amplitude_by_action"] == {"kick": pytest.approx(1.0), "wave": pytest.approx(0.5)}
+    assert set(row["metrics"]) == {"speed", "amplitude"}
+    # an action whose real motions stand still has no ratio
+    still = RealSets([], labels, [], np.ones(2), [], [np.array([1.0, 1.0, 0.0, 0.0])], [np.ones(4)])
+    out = damping_metrics(np.ones(4), np.ones(4), labels, still)
+    assert "speed/1" not in out and out["speed"] == pytest.approx(1.0)

@@ -319,3 +319,70 @@ def test_mean_ci95_known_values():
     assert metrics.mean_ci95([7.0]) == (7.0, 0.0)
     with pytest.raises(ValueError):
         metrics.mean_ci95([])
+
+
+# ---------------------------------------------------------------------------------------------
+# damping: body speed, amplitude, their ratios and the noise ceiling
+
+
+def _swing(n: int = 1, T: int = 60, period: float = 20.0, amp: float = 0.3, phase: float = 0.0,
+           stretch: float = 1.0) -> np.ndarray:
+    """(n, T, 3, 3): a root walking along z, a still joint above it and a joint swinging along x."""
+    t = np.arange(T) / stretch
+    m = np.zeros((n, T, 3, 3))
+    m[:, :, :, 2] += 0.05 * np.arange(T)[None, :, None]  # the root's trajectory carries every joint
+    m[:, :, 1, 1] += 0.5
+    m[:, :, 2, 0] += amp * np.sin(2 * np.pi * t / period + phase)
+    return m
+
+
+def test_body_speed_and_amplitude_known_values():
+    m = np.zeros((1, 11, 3, 3))
+    m[0, :, 1, 0] = 0.1 * np.arange(11)  # joint 1 moves 0.1 per frame about the root, joint 2 is still
+    m[0, :, :, 2] += 3.0 * np.arange(11)[:, None]  # the root's own motion does not count
+    assert metrics.body_speed(m, smooth=1)[0] == pytest.approx(0.05)
+    assert metrics.body_speed(m, smooth=3)[0] == pytest.approx(0.05)  # a moving average keeps a straight line
+    sq = np.zeros((1, 10, 2, 3))
+    sq[0, ::2, 1, 0] = 2.0  # x alternates 2, 0, 2, 0: mean 1, deviation 1 at every frame
+    assert metrics.body_amplitude(sq, smooth=1)[0] == pytest.approx(1.0)
+    assert metrics.body_speed(sq, smooth=1)[0] == pytest.approx(2.0)
+    assert metrics.body_speed(sq, smooth=2)[0] == pytest.approx(0.0)  # jitter averages away
+
+
+def test_damping_ratios_see_slowed_and_shrunk_motion():
+    real = _swing(2)
+    labels = np.array([0, 1])
+    same = metrics.damping_ratios(real, labels, real, labels)
+    assert same["speed"] == pytest.approx(1.0) and same["amplitude"] == pytest.approx(1.0)
+    shrunk = metrics.damping_ratios(_swing(2, amp=0.15), labels, real, labels)
+    assert shrunk["speed"] == pytest.approx(0.5, rel=1e-6) and shrunk["amplitude"] == pytest.approx(0.5, rel=1e-6)
+    # the same swing played at half speed over whole periods (a 3-frame average barely touches either)
+    slowed = metrics.damping_ratios(_swing(2, T=120, stretch=2.0), labels, _swing(2, T=120), labels)
+    assert slowed["speed"] == pytest.approx(0.5, abs=0.03)  # half the speed at the same swing
+    assert slowed["amplitude"] == pytest.approx(1.0, abs=0.03)
+    mixed = metrics.damping_ratios(np.concatenate([_swing(1), _swing(1, amp=0.15)]), labels, real, labels)
+    assert mixed["speed_by_class"] == pytest.approx({0: 1.0, 1: 0.5})
+    assert mixed["speed"] == pytest.approx(0.75)
+
+
+def test_class_ratios_nan_where_nothing_to_compare():
+    r = metrics.class_ratios([1.0, 2.0, 3.0], [0, 1, 2], [2.0, 0.0], [0, 1])
+    assert r[0] == pytest.approx(0.5)
+    assert np.isnan(r[1]) and np.isnan(r[2])  # real mean 0; no real motions at all
+    assert metrics.mean_finite(r.values()) == pytest.approx(0.5)
+    assert np.isnan(metrics.mean_finite([float("nan")]))
+
+
+def test_noise_ceiling_from_exact_codes_to_class_average():
+    # two clips of one class swinging in antiphase: their average does not move at all
+    m = np.concatenate([_swing(1), _swing(1, phase=np.pi)])
+    labels = np.array([0, 0])
+    codes = np.array([[0.0, 0.0], [1.0, 0.0]])
+    rng = np.random.default_rng(0)
+    sharp = metrics.noise_ceiling(codes, np.full((2, 2), 1e-3), m, labels, rng)
+    assert sharp["speed"] == pytest.approx(1.0, abs=1e-6)  # the code names its clip: nothing is averaged
+    blurred = metrics.noise_ceiling(codes, np.full((2, 2), 1e3), m, labels, rng)
+    assert blurred["speed"] < 0.01 and blurred["amplitude"] < 0.01
+    # clips of other classes never mix in, however close their codes
+    other = metrics.noise_ceiling(codes, np.full((2, 2), 1e3), m, np.array([0, 1]), rng)
+    assert other["speed"] == pytest.approx(1.0, abs=1e-6)

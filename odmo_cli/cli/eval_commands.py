@@ -13,7 +13,8 @@ from odmo_cli.errors import UserError
 
 
 METRIC_HEADS = {"accuracy": "Acc ↑", "fid": "FID ↓", "diversity": "Diversity →", "multimodality": "MModality →",
-                "inception": "IS ↑", "n_apd": "n-APD", "bone_std": "bone std ↓"}
+                "inception": "IS ↑", "n_apd": "n-APD", "bone_std": "bone std ↓", "speed": "speed →1",
+                "amplitude": "amplitude →1"}
 
 
 def evaluate(
@@ -28,11 +29,12 @@ def evaluate(
     samples: Annotated[Optional[list[Path]], typer.Option("--samples", help="Evaluate a samples .npz made elsewhere.")] = None,
     customization: Annotated[bool, typer.Option("--customization", help="Also the end-point protocol (§4.4).")] = False,
     held_out: Annotated[bool, typer.Option("--held-out", help="Also a row for the real clips the classifier never trained on (odmo classifiers).")] = False,
-    by_action: Annotated[bool, typer.Option("--by-action", help="Also print each row's accuracy per action.")] = False,
+    by_action: Annotated[bool, typer.Option("--by-action", help="Also print each row's accuracy, speed and amplitude ratios per action.")] = False,
     json_out: Annotated[Optional[Path], typer.Option("--json", help="Write the full report as JSON here.")] = None,
     data: DataOpt = None, seed: SeedOpt = 0,
 ):
-    """The evaluation protocol: Acc, FID, Diversity, Multimodality, n-APD, bone std (mean ± 95% CI)."""
+    """The evaluation protocol: Acc, FID, Diversity, Multimodality, n-APD, bone std, and the speed and
+    amplitude of the body's motion over the real motions' (mean ± 95% CI)."""
     from odmo_cli.evaluate import EvalConfig, run_evaluation
     from odmo_cli.io import atomic_path
 
@@ -50,10 +52,13 @@ def evaluate(
         table.add_column(METRIC_HEADS[key], justify="right")
     for row in report.rows:
         table.add_row(row["name"], *(f"{row['metrics'][k][0]:.{3 if k in ('fid', 'bone_std') else 2}f}"
-                                     f" ±{row['metrics'][k][1]:.2f}" for k in METRIC_HEADS))
+                                     f" ±{row['metrics'][k][1]:.2f}" if k in row["metrics"] else "-"
+                                     for k in METRIC_HEADS))
     console.print(table)
     if by_action:
-        console.print(_by_action_table(report.rows))
+        for key, title, digits in (("by_action", "accuracy", 1), ("speed_by_action", "speed ratio", 2),
+                                   ("amplitude_by_action", "amplitude ratio", 2)):
+            console.print(_by_action_table(report.rows, key, title, digits))
     for c in report.customization:
         m = c["metrics"]
         console.print(f"customization {c['name']}: Acc {m['accuracy'][0]:.2f} ±{m['accuracy'][1]:.2f}, "
@@ -66,14 +71,14 @@ def evaluate(
         console.print(f"wrote {json_out}")
 
 
-def _by_action_table(rows: list[dict]) -> Table:
-    table = Table(title="accuracy per action (mean ± 95% CI)")
+def _by_action_table(rows: list[dict], key: str, title: str, digits: int) -> Table:
+    table = Table(title=f"{title} per action (mean ± 95% CI)")
     table.add_column("action")
     for row in rows:
         table.add_column(row["name"], justify="right")
-    actions = list(dict.fromkeys(a for row in rows for a in row["by_action"]))
+    actions = list(dict.fromkeys(a for row in rows for a in row.get(key, {})))
     for a in actions:
-        cells = [f"{row['by_action'][a][0]:.1f} ±{row['by_action'][a][1]:.1f}" if a in row["by_action"] else "-"
+        cells = [f"{row[key][a][0]:.{digits}f} ±{row[key][a][1]:.{digits}f}" if a in row.get(key, {}) else "-"
                  for row in rows]
         table.add_row(a, *cells)
     return table

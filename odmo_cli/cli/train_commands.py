@@ -96,7 +96,10 @@ def train(
     r = result.report
     console.print(f"wrote {result.out} after {result.epochs} epochs")
     console.print(f"held-out reconstruction ({r['held_out_clips']} clips, no teacher forcing): "
-                  f"mean joint error {r['held_out_mpjpe']:.3f}, end-point error {r['held_out_end_error']:.3f}")
+                  f"mean joint error {r['held_out_mpjpe']:.3f}, end-point error {r['held_out_end_error']:.3f}, "
+                  f"speed {r['held_out_speed']:.2f} and amplitude {r['held_out_amplitude']:.2f} of the real clips'")
+    console.print(f"noise ceiling (best squared-error output under the posterior noise): speed "
+                  f"{r['ceiling_speed']:.2f}, amplitude {r['ceiling_amplitude']:.2f}")
     console.print(f"latent space: centroid distance {r['centroid_distance']:.2f} (min {r['min_centroid_distance']:.2f}, "
                   f"alpha {r['alpha']:g}), spread {r['spread']:.2f}, nearest-centroid accuracy "
                   f"{100 * r['nearest_centroid_acc']:.1f}%")

@@ -67,6 +67,7 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
         l_r = sequence_error(out["trajectory"], real_traj, w)
     l_mre = sequence_error(out["motion"], motion, w)
     l_cons = sequence_error(out["trajectory"], out["motion"][:, :, 0])
+    l_vel = sequence_error(out["motion"].diff(dim=1), motion.diff(dim=1), w)
     half = len(motion) // 2
     mu, logvar = out["mu"], out["logvar"]
     same = labels[:half] == labels[half:]
@@ -77,6 +78,7 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
         "r": l_r.mean(),
         "mre": l_mre.mean(),
         "cons": l_cons.mean(),
+        "vel": l_vel.mean(),
         "vae": standard_kl(mu, logvar).mean() * 2,
     }
 
@@ -85,6 +87,8 @@ def total_loss(terms: dict[str, torch.Tensor], cfg) -> torch.Tensor:
     """Eq. 5 with the ablation switches. Without L_es, ODMO "becomes a classic VAE" (§4.2.4):
     the contrastive and sigma2 terms are replaced by the KL to N(0, I)."""
     recon = terms["mre"]
+    if cfg.vel_weight:
+        recon = recon + cfg.vel_weight * terms["vel"]
     if cfg.use_traj:
         recon = recon + terms["r"]
     if cfg.use_cons:

@@ -40,6 +40,10 @@ class ODMOConfig:
     # real trajectory) or per-step velocities (the paper's eq. 2). With velocities the error of
     # the end point is spread over T tiny terms and the model learns to ignore r_e.
     traj_loss: str = "position"
+    # weight of L_vel, the squared error of frame-to-frame joint velocities (not in the paper nor
+    # the release; 0 turns it off). Position errors alone let the free-running decoder drift to an
+    # average, slow pose; velocity errors weight the fast parts of a motion that drift loses.
+    vel_weight: float = 0.0
 
     @classmethod
     def from_dict(cls, d: dict) -> "ODMOConfig":
@@ -54,6 +58,8 @@ class ODMOConfig:
             raise ValueError(f"traj_loss must be position or velocity, got {self.traj_loss!r}")
         if not (self.sigma2 > 0 and self.recon_weight > 0):
             raise ValueError(f"sigma2 and recon_weight must be positive, got {self.sigma2} and {self.recon_weight}")
+        if self.vel_weight < 0:
+            raise ValueError(f"vel_weight must be non-negative, got {self.vel_weight}")
 
 
 def condition(onehot: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
@@ -132,7 +138,8 @@ class MotionGenerator(nn.Module):
                 teacher: torch.Tensor | None = None) -> torch.Tensor:
         """trajectory (B, T, 3), cond (B, C*D) -> poses (B, T, J*3).
 
-        teacher (T,) bool: at steps where it is True the previous pose fed in is target's (B, T, J*3).
+        teacher (T,) bool: at steps where it is True the previous pose fed in is target's (B, T, J*3);
+        (B, T) bool: the same choice made for each clip and step.
         """
         B, T = trajectory.shape[:2]
         p = self.cfg.n_joints * 3
@@ -150,7 +157,9 @@ class MotionGenerator(nn.Module):
         prev = trajectory.new_zeros(B, p)
         outputs = []
         for t in range(T):
-            if teacher is not None and teacher[t]:
+            if teacher is not None and teacher.dim() == 2:
+                x = torch.where(teacher[:, t, None], real_part[t], F.linear(prev, w_prev)) + fixed[t]
+            elif teacher is not None and teacher[t]:
                 x = real_part[t] + fixed[t]
             else:
                 x = F.linear(prev, w_prev) + fixed[t]
