@@ -171,17 +171,47 @@ class MotionBatch:
             self._reached[b:b + len(block)] = block[:, -1, 0]
             yield block
 
-    def save(self, path: str | Path) -> None:
+    def end_mask(self) -> np.ndarray:
+        """(N, 3) bool: the end-point coordinates the user asked for (the others came from the
+        nearest latent-bank clip, or are NaN for models that take no end point)."""
+        mask = np.zeros((len(self), 3), dtype=bool)
+        mask[:, list(self.end_axes)] = True
+        return mask
+
+    def save(self, path: str | Path, up: str = "dataset") -> None:
+        """Write the samples file (docs/formats.md). up="y" turns positions and end points y-up
+        (a proper rotation: left stays left); "dataset" keeps the dataset's own frame."""
+        if up not in UP_CHOICES:
+            raise UserError(f"unknown --up {up!r}; valid: {', '.join(UP_CHOICES)}")
         sk = get_skeleton(self.dataset["skeleton"])
-        motions = self.motions
+        rot = sk.y_up_rotation().astype(np.float32) if up == "y" else np.eye(3, dtype=np.float32)
+        motions = self.motions @ rot.T if self.motions is not None else None
         if motions is None:
             cfg = self.loaded.model.cfg
-            motions = StreamedArray((len(self), cfg.length, cfg.n_joints, 3), np.float32, self._motion_blocks())
+            blocks = (block @ rot.T for block in self._motion_blocks())
+            motions = StreamedArray((len(self), cfg.length, cfg.n_joints, 3), np.float32, blocks)
         save_npz(path, motions=motions, actions=self.actions.astype(str), modes=self.modes,
-                 codes=self.codes, end_points=self.end_points, fps=np.float32(self.dataset["fps"]),
-                 skeleton=np.str_(sk.name), joint_names=np.array(sk.joint_names), parents=np.array(sk.parents),
-                 up_axis=np.str_(self.dataset["up_axis"]), model=np.str_(self.model), seed=np.int64(self.seed),
-                 **self.extra)
+                 codes=self.codes, end_points=self.end_points @ rot.T, end_mask=self.end_mask(),
+                 fps=np.float32(self.dataset["fps"]), dataset=np.str_(self.dataset["name"]), skeleton=np.str_(sk.name),
+                 joint_names=np.array(sk.joint_names), parents=np.array(sk.parents),
+                 up_axis=np.str_("+y" if up == "y" else self.dataset["up_axis"]),
+                 units=np.str_(self.dataset.get("units", "m")), format_version=np.int64(SAMPLES_FORMAT_VERSION),
+                 model=np.str_(model_name(self.model)), seed=np.int64(self.seed), **self.extra)
+
+
+SAMPLES_FORMAT_VERSION = 1  # the samples .npz (docs/formats.md); files without the key came before it
+UP_CHOICES = ("dataset", "y")
+
+
+def model_name(source: str | Path) -> str:
+    """What a samples file records as its model: a shipped model's short name, else the file name
+    (never a path of the machine that made it)."""
+    path = Path(source)
+    for short, recipe in (("humanact12", "humanact12"), ("cmu", "cmu_mocap")):
+        shipped = shipped_file(recipe)
+        if shipped is not None and path.resolve() == shipped.resolve():
+            return short
+    return path.name
 
 
 @torch.inference_mode()

@@ -88,6 +88,49 @@ def _write_streamed(f, value: StreamedArray) -> None:
         raise ValueError(f"streamed {rows} rows, the header says {value.shape[0]}")
 
 
+def read_samples(path: str | Path, keys: tuple[str, ...] = ("motions", "actions"), rows: slice = slice(None),
+                 optional: tuple[str, ...] = ()) -> dict:
+    """A samples file's arrays (docs/formats.md) with motions and end points in the dataset's own
+    frame (a file written with `--up y` is turned back), plus "skeleton" and "fps".
+
+    rows: only these motions (the file is read lazily); `optional` keys are None when absent.
+    UserError when the file is missing or unreadable or lacks one of `keys`.
+    """
+    from odmo_cli.skeletons import get_skeleton
+
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"samples file not found: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            missing = [k for k in keys if k not in f]
+            if missing:
+                raise UserError(f"{path} is not an odmo samples file (no {missing[0]})")
+            out = {k: (f[k][rows] if k in ROW_KEYS else f[k]) if k in f else None for k in keys + optional}
+            out["skeleton"], out["fps"] = str(f["skeleton"]), float(f["fps"])
+            up = str(f["up_axis"]) if "up_axis" in f else None
+            out["n"] = len(f["motions"]) if "motions" in f else 0
+    except KeyError as exc:
+        raise UserError(f"{path} is not an odmo samples file (no {exc.args[0]})") from None
+    except (ValueError, OSError, zipfile.BadZipFile) as exc:
+        raise UserError(f"cannot read {path}: {exc}") from None
+    try:
+        sk = get_skeleton(out["skeleton"])
+    except UserError as exc:
+        raise UserError(f"{path}: {exc}") from None
+    if up is not None and up != sk.up_axis:
+        if up != "+y":
+            raise UserError(f"{path}: up axis {up!r} is neither the skeleton's ({sk.up_axis}) nor +y")
+        back = sk.y_up_rotation()  # the inverse of a proper rotation is its transpose: x @ R
+        for k in ("motions", "end_points"):
+            if out.get(k) is not None:
+                out[k] = (out[k] @ back).astype(out[k].dtype)
+    return out
+
+
+ROW_KEYS = ("motions", "actions", "modes", "codes", "end_points", "end_mask")
+
+
 def save_checkpoint(path: str | Path, payload: dict) -> None:
     """Write a checkpoint atomically. The payload must hold only tensors and plain values."""
     with atomic_path(path) as tmp:

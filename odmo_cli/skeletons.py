@@ -17,6 +17,7 @@ class Skeleton:
     joint_names: tuple[str, ...]
     chains: tuple[tuple[int, ...], ...]
     up_axis: str  # "+y" or "-y": the direction of "up" in the dataset's own frame
+    bvh_names: tuple[str, ...] | None = None  # the usual BVH names of the joints (None: use joint_names)
 
     @property
     def n_joints(self) -> int:
@@ -45,6 +46,15 @@ class Skeleton:
     def up_sign(self) -> float:
         return -1.0 if self.up_axis.startswith("-") else 1.0
 
+    def y_up_rotation(self):
+        """(3, 3) proper rotation taking the dataset's frame to y-up, the subject's left kept on +x:
+        identity for +y, half a turn about x for -y. UserError for other up axes."""
+        import numpy as np
+
+        if self.up_index != 1:
+            raise UserError(f"skeleton {self.name!r} is {self.up_axis}-up; only y-up and -y-up frames can be turned y-up")
+        return np.diag([1.0, self.up_sign, self.up_sign])
+
     @property
     def ground_axes(self) -> tuple[int, int]:
         """The two axes spanning the ground plane (end points are given in these)."""
@@ -68,6 +78,30 @@ _CMU20_NAMES = (
     "right_hip", "right_knee", "right_ankle", "right_toe",
 )
 
+def _sided(names: dict[str, str]) -> dict[str, str]:
+    """left_* -> Left*, plus the right_* -> Right* twins."""
+    out = dict(names)
+    for k, v in names.items():
+        if k.startswith("left_"):
+            out["right_" + k[5:]] = "Right" + v[4:]
+    return out
+
+
+# The names MotionBuilder, Blender's Rigify/Mixamo retargeting and the CMU BVH conversion use for
+# these bones (Hips, Spine, LeftUpLeg, LeftArm, ...). cmu20's are those the CMU BVH release gives
+# the joints A2M kept, so an exported file reads back with the same joint map as the release.
+_SMPL_BVH = _sided({
+    "pelvis": "Hips", "left_hip": "LeftUpLeg", "left_knee": "LeftLeg", "left_ankle": "LeftFoot",
+    "left_foot": "LeftToeBase", "spine1": "Spine", "spine2": "Spine1", "spine3": "Spine2", "neck": "Neck",
+    "head": "Head", "left_collar": "LeftShoulder", "left_shoulder": "LeftArm", "left_elbow": "LeftForeArm",
+    "left_wrist": "LeftHand", "left_hand": "LeftFingerBase",
+})
+_CMU20_BVH = _sided({
+    "root": "Hips", "thorax": "Spine1", "neck": "Neck", "head": "Head", "left_shoulder": "LeftArm",
+    "left_elbow": "LeftForeArm", "left_wrist": "LeftHand", "left_hand": "LeftFingerBase", "left_hip": "LeftUpLeg",
+    "left_knee": "LeftLeg", "left_ankle": "LeftFoot", "left_toe": "LeftToeBase",
+})
+
 # ODMO's UESTC release (18 joints, supplement Figure 1). Which side is "left", and the up axis,
 # have not been checked against data (the release is not in our test data): sides are named a/b.
 _UESTC18_NAMES = (
@@ -80,12 +114,12 @@ SKELETONS: dict[str, Skeleton] = {
         "humanact12", _SMPL_NAMES,
         ((0, 1, 4, 7, 10), (0, 2, 5, 8, 11), (0, 3, 6, 9, 12, 15),
          (9, 13, 16, 18, 20, 22), (9, 14, 17, 19, 21, 23)),
-        up_axis="-y",
+        up_axis="-y", bvh_names=tuple(_SMPL_BVH[n] for n in _SMPL_NAMES),
     ),
     "cmu20": Skeleton(
         "cmu20", _CMU20_NAMES,
         ((0, 1, 2, 3), (0, 12, 13, 14, 15), (0, 16, 17, 18, 19), (1, 4, 5, 6, 7), (1, 8, 9, 10, 11)),
-        up_axis="+y",
+        up_axis="+y", bvh_names=tuple(_CMU20_BVH[n] for n in _CMU20_NAMES),
     ),
     "uestc18": Skeleton(
         "uestc18", _UESTC18_NAMES,

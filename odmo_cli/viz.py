@@ -72,16 +72,26 @@ def _writer_for(out: Path, fps: float):
 
 def animate(motions: np.ndarray, skeleton: Skeleton, out: str | Path, fps: float = 20,
             titles: Sequence[str] | None = None, end_points: np.ndarray | None = None,
-            trail: bool = False, cols: int | None = None) -> tuple[Path, str]:
+            trail: bool = False, cols: int | None = None, size: tuple[int, int] | None = None,
+            frame: int | None = None) -> tuple[Path, str]:
     """Write motions (N, T, J, 3) as one animation (a grid, one cell per motion).
 
     Each cell has a ground plane at the lowest foot height, the root trajectory on it, and the
     asked end point (end_points (N, 3), dataset frame; NaN rows are skipped) as a cross. With
     `trail` the paths of the root, hands, feet and head so far are drawn. `.mp4` needs ffmpeg,
-    else a GIF is written beside it. Returns (the path written, a notice or "").
+    else a GIF is written beside it; `.png` is a still of `frame` (default: the middle one).
+    size: (width, height) of the output in pixels (default: 156 x 168 per cell for animations).
+    Returns (the path written, a notice or "").
     """
     out = Path(out)
     written, writer, notice = _writer_for(out, fps)
+    n_frames = max(len(m) for m in motions) if len(motions) else 0
+    if frame is not None and writer is not None:
+        raise UserError(f"--frame makes a still: write it to a .png, not {out.name}")
+    if frame is not None and not 0 <= frame < n_frames:
+        raise UserError(f"--frame {frame} is out of range: the motions have {n_frames} frames (0..{n_frames - 1})")
+    if size is not None and (size[0] < 16 or size[1] < 16 or size[0] * size[1] > 4096 * 4096):
+        raise UserError(f"--size must be between 16x16 and 4096x4096 pixels, got {size[0]}x{size[1]}")
     motions = np.asarray(motions, dtype=np.float32)
     if motions.ndim != 4 or motions.shape[-1] != 3 or motions.shape[2] != skeleton.n_joints or not len(motions):
         raise UserError(f"motions must be (N, T, {skeleton.n_joints}, 3), got {motions.shape}")
@@ -116,50 +126,102 @@ def animate(motions: np.ndarray, skeleton: Skeleton, out: str | Path, fps: float
                 line.set_data_3d(path[:, 0], path[:, 1], path[:, 2])
         return [ln for group in lines + trails for ln in group]
 
-    n_frames = max(len(m) for m in motions)
+    dpi = 80 if writer is None else 60
+    if size is not None:
+        fig.set_size_inches(size[0] / dpi, size[1] / dpi)
     try:
         with atomic_path(written, suffix=written.suffix) as tmp:
             if writer is None:
-                draw(n_frames // 2)
-                fig.savefig(tmp, format="png", dpi=80)
+                draw(n_frames // 2 if frame is None else frame)
+                fig.savefig(tmp, format="png", dpi=dpi)
             else:
-                animation.FuncAnimation(fig, draw, frames=n_frames, blit=False).save(str(tmp), writer=writer, dpi=60)
+                animation.FuncAnimation(fig, draw, frames=n_frames, blit=False).save(str(tmp), writer=writer, dpi=dpi)
     finally:
         plt.close(fig)
     return written, notice
 
 
 def render_samples(samples: str | Path, out: str | Path, index: int | None = None, grid: str | None = None,
-                   trail: bool = False) -> tuple[Path, str]:
-    """`odmo render`: one motion (--index, default 0) or a ROWSxCOLS grid of the first motions."""
+                   trail: bool = False, size: str | None = None, frame: int | None = None,
+                   compare: str | None = None, data: str | Path | None = None, seed: int = 0) -> tuple[Path, str]:
+    """`odmo render`: one motion (--index, default 0) or a ROWSxCOLS grid of the first motions.
+
+    compare="real": under the generated motions, as many real clips of the same actions (random
+    crops of the dataset's clip length, found with --data as everywhere else, drawn with `seed`).
+    """
+    from odmo_cli.io import read_samples
     from odmo_cli.skeletons import get_skeleton
 
-    samples = Path(samples)
     if index is not None and grid is not None:
         raise UserError("give either --index or --grid, not both")
-    if not samples.is_file():
-        raise UserError(f"samples file not found: {samples}")
-    try:
-        with np.load(samples, allow_pickle=False) as f:
-            n = len(f["motions"])
-            fps, skeleton = float(f["fps"]), get_skeleton(str(f["skeleton"]))
-            if grid is not None:
-                rows, cols = _grid(grid)
-                pick = list(range(min(n, rows * cols)))
-            else:
-                index = 0 if index is None else index
-                if not 0 <= index < n:
-                    raise UserError(f"--index {index} is out of range: {samples.name} has {n} motions (0..{n - 1})")
-                pick, cols = [index], None
-            motions = f["motions"][pick[0]: pick[-1] + 1]
-            actions = f["actions"][pick[0]: pick[-1] + 1] if "actions" in f else [""] * len(pick)
-            ends = f["end_points"][pick[0]: pick[-1] + 1] if "end_points" in f else None
-    except KeyError as exc:
-        raise UserError(f"{samples} is not an odmo samples file (no {exc.args[0]})") from None
-    except (ValueError, OSError) as exc:
-        raise UserError(f"cannot read {samples}: {exc}") from None
+    if compare not in (None, "real"):
+        raise UserError(f"unknown --compare {compare!r}; valid: real")
+    pixels = _size(size) if size is not None else None
+    n = read_samples(samples, keys=())["n"]
+    if grid is not None:
+        rows, cols = _grid(grid)
+        pick = list(range(min(n, rows * cols)))
+    else:
+        index = 0 if index is None else index
+        if not 0 <= index < n:
+            raise UserError(f"--index {index} is out of range: {Path(samples).name} has {n} motions (0..{n - 1})")
+        pick, cols = [index], None
+    f = read_samples(samples, keys=("motions",), rows=slice(pick[0], pick[-1] + 1),
+                     optional=("actions", "end_points", "dataset"))
+    motions, ends = f["motions"], f["end_points"]
+    actions = [str(a) for a in f["actions"]] if f["actions"] is not None else [""] * len(pick)
+    skeleton, fps = get_skeleton(f["skeleton"]), f["fps"]
     titles = [f"{a} #{i}" for i, a in zip(pick, actions)]
-    return animate(motions, skeleton, out, fps=fps, titles=titles, end_points=ends, trail=trail, cols=cols)
+    if compare == "real":
+        if f["actions"] is None:
+            raise UserError(f"--compare real needs the motions' actions; {Path(samples).name} has none")
+        dataset = str(f["dataset"]) if f["dataset"] is not None else None
+        real = real_examples(dataset, skeleton, actions, motions.shape[1], data, seed)
+        cols = cols or len(motions)
+        motions = np.concatenate([motions, real])
+        titles = titles + [f"real {a}" for a in actions]
+        if ends is not None:
+            ends = np.concatenate([ends, np.full((len(real), 3), np.nan, dtype=ends.dtype)])
+    return animate(motions, skeleton, out, fps=fps, titles=titles, end_points=ends, trail=trail, cols=cols,
+                   size=pixels, frame=frame)
+
+
+def real_examples(dataset: str | None, skeleton: Skeleton, actions: Sequence[str], length: int,
+                  data: str | Path | None, seed: int) -> np.ndarray:
+    """One random real crop (length frames, first root at the origin) per entry of `actions`:
+    (len(actions), length, J, 3). The dataset is the samples file's, else the shipped dataset
+    whose skeleton it is."""
+    from odmo_cli.data.dataset import crop_pad_shift, random_start
+    from odmo_cli.data.locate import resolve
+    from odmo_cli.data.manifest import available_manifests, load_manifest
+    from odmo_cli.data.readers import read_dataset
+
+    if dataset is None:
+        dataset = next((m for m in available_manifests() if load_manifest(m).skeleton_name == skeleton.name), None)
+        if dataset is None:
+            raise UserError(f"--compare real: no known dataset has skeleton {skeleton.name!r}")
+    manifest, root = resolve(dataset, data)
+    clips = read_dataset(root, manifest)
+    rng = np.random.default_rng(seed)
+    out = []
+    for a in actions:
+        if a not in manifest.action_names:
+            raise UserError(f"--compare real: {manifest.name} has no action {a!r}")
+        i = rng.choice(np.flatnonzero(clips.labels == list(manifest.action_names).index(a)))
+        m = clips.motions[i]
+        out.append(crop_pad_shift(m, length, random_start(len(m), length, rng)))
+    return np.stack(out)
+
+
+def _size(text: str) -> tuple[int, int]:
+    parts = text.lower().split("x")
+    try:
+        w, h = (int(p) for p in parts)
+    except ValueError:
+        w = h = 0
+    if len(parts) != 2 or w <= 0 or h <= 0:
+        raise UserError(f"--size must be WIDTHxHEIGHT in pixels, e.g. 640x480; got {text!r}")
+    return w, h
 
 
 def _grid(text: str) -> tuple[int, int]:

@@ -10,6 +10,7 @@ import torch
 from typer.testing import CliRunner
 
 from odmo_cli.cli import app
+from odmo_cli.errors import UserError
 from odmo_cli.generate import load_odmo, parse_point, sample
 from odmo_cli.latent import ActionModes, choose_k, discover_modes, knn_end_points, sample_codes
 
@@ -268,3 +269,42 @@ def test_sample_with_a_missing_model_names_the_choices(tmp_path):
     assert res.exit_code == 2
     assert "give a checkpoint file or a shipped name (humanact12, cmu)" in res.stderr
     assert not (tmp_path / "x.npz").exists()
+
+
+# -- the samples file ----------------------------------------------------------------------------
+
+def test_samples_file_records_units_version_model_and_asked_coordinates(lines_model, tmp_path):
+    from odmo_cli.generate import SAMPLES_FORMAT_VERSION
+
+    out = tmp_path / "s.npz"
+    res = CliRunner().invoke(app, ["sample", "--model", str(lines_model), "--action", "glide", "--n", "3",
+                                   "--end", "0.2,0.1", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    with np.load(out) as f:
+        assert str(f["units"]) == "m" and int(f["format_version"]) == SAMPLES_FORMAT_VERSION == 1
+        assert str(f["model"]) == "lines.pt"  # the file's name, not a path of this machine
+        assert str(f["up_axis"]) == "+y"  # the lines dataset's own frame
+        assert f["end_mask"].tolist() == [[True, False, True]] * 3  # x and z asked, height from the bank
+        assert np.allclose(f["end_points"][:, [0, 2]], [0.2, 0.1])
+    res = CliRunner().invoke(app, ["sample", "--model", str(lines_model), "--action", "glide", "--n", "2",
+                                   "--out", str(out)])
+    with np.load(out) as f:
+        assert not f["end_mask"].any() and f["end_mask"].shape == (2, 3)
+
+
+def test_up_y_turns_a_minus_y_dataset_and_reads_back(noise_checkpoint, tmp_path):
+    from odmo_cli.generate import load_model
+    from odmo_cli.io import read_samples
+
+    batch = sample(load_model(noise_checkpoint), ["all"], 3, seed=0)
+    batch.save(tmp_path / "own.npz")
+    batch.save(tmp_path / "up.npz", up="y")
+    own, up = np.load(tmp_path / "own.npz"), np.load(tmp_path / "up.npz")
+    assert str(own["up_axis"]) == "-y" and str(up["up_axis"]) == "+y"
+    # -y up: half a turn about x (a proper rotation, so left stays left)
+    np.testing.assert_array_equal(up["motions"], own["motions"] * np.array([1, -1, -1], np.float32))
+    back = read_samples(tmp_path / "up.npz", optional=("end_points",))
+    np.testing.assert_array_equal(back["motions"], own["motions"])
+    with pytest.raises(UserError, match="unknown --up 'z'"):
+        batch.save(tmp_path / "bad.npz", up="z")
+    assert not (tmp_path / "bad.npz").exists()

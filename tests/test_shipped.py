@@ -93,6 +93,7 @@ def test_sample_command_on_a_shipped_model(model, action, shape, tmp_path):
     with np.load(out) as d:
         assert d["motions"].shape == (3, *shape) and list(d["actions"]) == [action] * 3
         assert np.isfinite(d["motions"]).all()
+        assert str(d["model"]) == (model[1] if model else "humanact12")  # the short name, not a path
 
 
 QUALITY_BARS = {"humanact12": (95.0, 0.25), "cmu_mocap": (88.0, 0.6)}  # Acc >=, FID <= (default-model issue)

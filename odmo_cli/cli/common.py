@@ -45,6 +45,8 @@ ModelOpt = Annotated[Optional[str], typer.Option(
     "--model", help="Checkpoint path, or a shipped model: humanact12 (default), cmu.")]
 OutOpt = Annotated[Path, typer.Option("--out", help="Samples file to write (.npz).")]
 EndOpt = Annotated[Optional[str], typer.Option("--end", help="End point: x,z (ground plane) or x,y,z.")]
+UpOpt = Annotated[str, typer.Option("--up", help="Frame of the positions written: dataset (its own axes, as evaluation "
+                                              "expects) or y (turned y-up).")]
 
 
 def print_json(payload) -> None:

@@ -8,7 +8,8 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from odmo_cli.cli.common import (EndOpt, JsonOpt, ModelOpt, OutOpt, SeedOpt, print_json, app, console, err_console)
+from odmo_cli.cli.common import (DataOpt, EndOpt, JsonOpt, ModelOpt, OutOpt, SeedOpt, UpOpt, print_json, app,
+                                 console, err_console)
 from odmo_cli.errors import UserError
 
 
@@ -56,6 +57,12 @@ def _summary(batch, out: Path, as_json: bool, extra: dict | None = None) -> None
     console.print(f"model {batch.model}, seed {batch.seed}, {batch.dataset['fps']:g} fps, skeleton {batch.dataset['skeleton']}")
 
 
+UnitsOpt = Annotated[str, typer.Option("--units", help="BVH units: cm (most tools and rigs) or m.")]
+FloorOpt = Annotated[bool, typer.Option("--floor/--no-floor", help="BVH: lift the motion so its lowest foot touches y = 0.")]
+HelpersOpt = Annotated[bool, typer.Option("--helper-joints", help="BVH: a zero-length joint per child of the pelvis and chest "
+                                                                  "(one bone per child; exact however the torso bends).")]
+
+
 @app.command("sample")
 def sample_cmd(
     action: Annotated[list[str], typer.Option("--action", help="Action name (repeatable), or all.")],
@@ -71,17 +78,22 @@ def sample_cmd(
     steps: Annotated[int, typer.Option("--steps", help="End points on the --end-from/--end-to segment.")] = 10,
     gif: Annotated[Optional[Path], typer.Option("--gif", help="Also render the first motions to a GIF.")] = None,
     bvh: Annotated[Optional[Path], typer.Option("--bvh", help="Also write one BVH file per motion into this folder.")] = None,
+    up: UpOpt = "dataset",
+    units: UnitsOpt = "cm", floor: FloorOpt = True, helpers: HelpersOpt = False,
     seed: SeedOpt = 0, as_json: JsonOpt = False,
 ):
-    """Generate motions of the given actions (npz as in DESIGN.md)."""
+    """Generate motions of the given actions (the samples file is described in docs/formats.md)."""
+    from odmo_cli.bvh import BvhOptions
     from odmo_cli.generate import load_model, sample
+
+    bvh_options = BvhOptions(units, floor, helpers)  # checked before any work
 
     if mode is not None and mode_weights is not None:
         raise UserError("give either --mode or --mode-weights, not both")
     weights = _floats(mode_weights, "--mode-weights") if mode_weights is not None else None
     loaded = load_model(model)
     batch = sample(loaded, action, n, seed, mode, weights, sampling, end, end_from, end_to, steps, lazy=True)
-    batch.save(out)  # decodes batch by batch while writing: memory stays flat in n
+    batch.save(out, up)  # decodes batch by batch while writing: memory stays flat in n
     if gif is not None:
         from odmo_cli.skeletons import get_skeleton
         from odmo_cli.viz import animate
@@ -95,7 +107,7 @@ def sample_cmd(
     if bvh is not None:
         from odmo_cli.bvh import export_samples
 
-        report = export_samples(out, bvh)  # from the file just written: the batch is not kept decoded
+        report = export_samples(out, bvh, bvh_options)  # from the file just written: the batch is not kept decoded
         extra = {"bvh": str(bvh), "bvh_files": len(report.files), "bvh_max_error_mm": report.max_error_mm,
                  "bvh_mean_error_mm": report.mean_error_mm,
                  "bone_stretch_mm": report.max_stretch_mm}
@@ -105,7 +117,8 @@ def sample_cmd(
 
 
 def _bvh_note(report, folder: Path) -> None:
-    console.print(f"wrote {len(report.files)} BVH files to {folder}: joint positions within "
+    console.print(f"wrote {len(report.files)} BVH files ({report.joints} joints, y-up, {report.units}) to {folder}: "
+                  f"joint positions within "
                   f"{report.max_error_mm:.2f} mm (mean {report.mean_error_mm:.2f} mm) of the motions (bones stretch by up to "
                   f"{report.max_stretch_mm:.2f} mm; a BVH keeps each bone's mean length)", highlight=False)
 
@@ -114,16 +127,17 @@ def _bvh_note(report, folder: Path) -> None:
 def export_cmd(
     samples: Annotated[Path, typer.Argument(help="A samples file (.npz) from odmo sample/interpolate.")],
     bvh: Annotated[Path, typer.Option("--bvh", help="Folder for the BVH files (one per motion).")],
+    units: UnitsOpt = "cm", floor: FloorOpt = True, helpers: HelpersOpt = False,
     as_json: JsonOpt = False,
 ):
-    """Write every motion of a samples file as a BVH file (y-up, metres, the model's fps)."""
-    from odmo_cli.bvh import export_samples
+    """Write every motion of a samples file as a BVH file (y-up, the model's fps; docs/formats.md)."""
+    from odmo_cli.bvh import BvhOptions, export_samples
 
-    report = export_samples(samples, bvh)
+    report = export_samples(samples, bvh, BvhOptions(units, floor, helpers))
     if as_json:
-        return print_json({"bvh": str(bvh), "files": [str(f) for f in report.files],
-                            "max_error_mm": report.max_error_mm,
-                            "mean_error_mm": report.mean_error_mm, "bone_stretch_mm": report.max_stretch_mm})
+        return print_json({"bvh": str(bvh), "files": [str(f) for f in report.files], "units": report.units,
+                           "joints": report.joints, "max_error_mm": report.max_error_mm,
+                           "mean_error_mm": report.mean_error_mm, "bone_stretch_mm": report.max_stretch_mm})
     _bvh_note(report, bvh)
 
 
@@ -134,11 +148,15 @@ def render_cmd(
     index: Annotated[Optional[int], typer.Option("--index", help="Render only this motion (default 0).")] = None,
     grid: Annotated[Optional[str], typer.Option("--grid", help="ROWSxCOLS of the first motions, e.g. 4x5.")] = None,
     trail: Annotated[bool, typer.Option("--trail", help="Draw the paths of the root, hands and feet so far.")] = False,
+    size: Annotated[Optional[str], typer.Option("--size", help="Output size WIDTHxHEIGHT in pixels, e.g. 640x480.")] = None,
+    frame: Annotated[Optional[int], typer.Option("--frame", help="For a .png still: the frame to draw (default: the middle one).")] = None,
+    compare: Annotated[Optional[str], typer.Option("--compare", help="real: real clips of the same actions under the generated ones (needs the data).")] = None,
+    data: DataOpt = None, seed: SeedOpt = 0,
 ):
     """3-D stick-figure animation with ground plane, root trajectory and asked end point."""
     from odmo_cli.viz import render_samples
 
-    written, notice = render_samples(samples, out, index, grid, trail)
+    written, notice = render_samples(samples, out, index, grid, trail, size, frame, compare, data, seed)
     if notice:
         err_console.print(notice, highlight=False, markup=False)
     console.print(f"wrote {written}", highlight=False)
@@ -177,14 +195,14 @@ def interpolate_cmd(
     from_code: Annotated[Optional[int], typer.Option("--from-code", help="Index into the latent bank.")] = None,
     to_code: Annotated[Optional[int], typer.Option("--to-code", help="Index into the latent bank.")] = None,
     steps: Annotated[int, typer.Option("--steps")] = 8,
-    end: EndOpt = None, out: OutOpt = Path("interpolation.npz"), model: ModelOpt = None,
+    end: EndOpt = None, out: OutOpt = Path("interpolation.npz"), model: ModelOpt = None, up: UpOpt = "dataset",
     seed: SeedOpt = 0, as_json: JsonOpt = False,
 ):
     """Blend two modes (or two codes) of an action: one motion per step on the line between them."""
     from odmo_cli.generate import interpolate, load_odmo
 
     batch = interpolate(load_odmo(model), action, steps, from_mode, to_mode, from_code, to_code, end, seed)
-    batch.save(out)
+    batch.save(out, up)
     _summary(batch, out, as_json)
 
 

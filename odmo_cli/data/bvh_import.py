@@ -92,7 +92,17 @@ class JointMap:
         return out
 
 
+def _export_map(skeleton: str) -> JointMap:
+    """The names `odmo export` writes (Skeleton.bvh_names): its files read back as they were written."""
+    sk = get_skeleton(skeleton)
+    return JointMap("odmo-export", skeleton, {j: [b] for j, b in zip(sk.joint_names, sk.bvh_names)})
+
+
+# Order matters for --skeleton auto: the first map whose joints a file has wins. An odmo humanact12
+# export also has every joint the CMU map needs, so the export maps come first (the CMU release and
+# a cmu20 export have no Spine2 and no LeftShoulder, so the humanact12 one never takes them).
 BUILTIN_MAPS = (
+    _export_map("humanact12"),
     JointMap("cmu-bvh", "cmu20", _CMU_TO_CMU20),
     JointMap("cc-base", "humanact12", _CC_TO_HUMANACT12),
     JointMap("cc-base", "cmu20", _CC_TO_CMU20),
@@ -281,7 +291,11 @@ def to_target(clip, jmap: JointMap, sk: Skeleton, manifest: Manifest, fps: float
     file_up[axis] = np.sign(rise.mean(0)[axis])
     target_up = np.zeros(3)
     target_up[sk.up_index] = sk.up_sign
-    turn = so3_exp(rotation_between(torch.as_tensor(file_up), torch.as_tensor(target_up))).numpy()
+    if axis == 1 and sk.up_index == 1:  # y-up to -y-up (or back): half a turn about x, as `odmo export` turns
+        sign = file_up[1] * target_up[1]
+        turn = np.diag([1.0, sign, sign])
+    else:
+        turn = so3_exp(rotation_between(torch.as_tensor(file_up), torch.as_tensor(target_up))).numpy()
     pos = pos @ turn.T  # proper rotation: the subject's left stays left
     height = float(np.percentile(np.abs(rise[:, axis]), 90))
     if unit == "auto":
