@@ -23,7 +23,7 @@ from odmo_cli.data.readers import ClipSet
 from odmo_cli.errors import TrainingError, UserError
 from odmo_cli.io import load_checkpoint, save_checkpoint
 from odmo_cli.models.losses import odmo_terms, total_loss
-from odmo_cli.models.odmo import ODMO, ODMOConfig
+from odmo_cli.models.odmo import ODMO, ODMOConfig, preset_values
 
 FORMAT_VERSION = 1
 
@@ -96,10 +96,12 @@ def dataset_description(clips: ClipSet) -> dict:
             "fps": float(m.fps), "length": int(m.clip_length), "up_axis": m.up_axis}
 
 
-def model_config_for(clips: ClipSet, overrides: dict | None = None) -> ODMOConfig:
+def model_config_for(clips: ClipSet, overrides: dict | None = None, preset: str = "odmo") -> ODMOConfig:
+    """ODMOConfig for the clips' dataset: its shapes, the preset's loss scales (models.odmo.PRESETS),
+    then `overrides`."""
     m = clips.manifest
     base = dict(n_joints=m.skeleton.n_joints, n_classes=len(m.actions), length=m.clip_length,
-                up_axis=m.skeleton.up_index)
+                up_axis=m.skeleton.up_index, **preset_values(preset, m.name))
     base.update(overrides or {})
     return ODMOConfig.from_dict(base)
 
@@ -319,7 +321,8 @@ def finish(trainer: Trainer) -> dict:
 
 
 def train_odmo(clips: ClipSet, tc: TrainConfig, out: Path, overrides: dict | None = None,
-               resume: Path | None = None, progress: Callable[[EpochLog], None] | None = None) -> TrainResult:
+               resume: Path | None = None, progress: Callable[[EpochLog], None] | None = None,
+               preset: str = "odmo") -> TrainResult:
     """Train ODMO on clips (or resume a checkpoint), then write the final checkpoint with its bank."""
     if resume is not None:
         ckpt = load_checkpoint(resume)
@@ -328,6 +331,6 @@ def train_odmo(clips: ClipSet, tc: TrainConfig, out: Path, overrides: dict | Non
         trainer = Trainer(clips, cfg, tc, out)
         trainer.load_state(ckpt)
     else:
-        trainer = Trainer(clips, model_config_for(clips, overrides), tc, out)
+        trainer = Trainer(clips, model_config_for(clips, overrides, preset), tc, out)
     history = trainer.run(progress)
     return TrainResult(Path(out), trainer.epoch, history, finish(trainer))

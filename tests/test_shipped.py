@@ -20,6 +20,7 @@ def assert_describes(ckpt: dict, manifest) -> None:
 
 
 CLASSIFIERS = {"humanact12": 0.95, "cmu_mocap": 0.90}  # the evaluation issue's bars
+QUALITY_BARS = {"humanact12": (95.0, 0.25), "cmu_mocap": (88.0, 0.6)}  # Acc >=, FID <= (the damping issue's bars)
 
 
 @pytest.mark.parametrize("name", CLASSIFIERS)
@@ -50,6 +51,42 @@ def test_shipped_classifier_accuracy_on_held_out_real_clips(name, data_dir):
     acc = float(np.mean(logits.argmax(1) == clips.labels[val]))
     assert acc == pytest.approx(ckpt["report"]["val_accuracy"], abs=1e-6)
     assert acc >= CLASSIFIERS[name]
+
+
+def _real_set(clips, manifest, seed: int, rate: float = 1.0, n: int = 100):
+    """n random crops per action (first root at the origin), each clip first replayed at `rate`."""
+    from odmo_cli.data.dataset import crop_pad_shift, random_start
+    from odmo_cli.models.classifier import _resample
+
+    rng = np.random.default_rng(seed)
+    motions, labels = [], []
+    for c in range(len(manifest.actions)):
+        for i in rng.choice(np.flatnonzero(clips.labels == c), n):
+            m = _resample(clips.motions[i], rate) if rate != 1.0 else clips.motions[i]
+            motions.append(crop_pad_shift(m, manifest.clip_length, random_start(len(m), manifest.clip_length, rng)))
+            labels.append(c)
+    return np.stack(motions), np.asarray(labels)
+
+
+@pytest.mark.parametrize("name", CLASSIFIERS)
+def test_shipped_classifier_sees_damped_motion(name, data_dir):
+    """Real motions played at half speed must not pass for real: clearly lower Acc, an FID over the
+    model bar (QUALITY_BARS) and at least 4x that of another real set. A classifier trained to
+    ignore playback speed (the earlier x[1/2, 2] augmentation) fails this."""
+    from odmo_cli import metrics
+
+    manifest, root = resolve(name, data_dir)
+    clips = read_dataset(root, manifest)
+    clf = load_classifier(shipped_classifier(name))
+    _, ref = clf.predict(_real_set(clips, manifest, seed=1)[0])
+    scores = {}
+    for rate in (1.0, 0.5):
+        motions, labels = _real_set(clips, manifest, seed=2, rate=rate)
+        logits, feats = clf.predict(motions)
+        scores[rate] = (100 * metrics.accuracy(logits, labels), metrics.fid_from_features(ref, feats))
+    (acc, fid), (slow_acc, slow_fid) = scores[1.0], scores[0.5]
+    assert slow_acc <= acc - 5, scores
+    assert slow_fid > QUALITY_BARS[name][1] and slow_fid >= 4 * fid, scores
 
 
 # -- shipped ODMO models ------------------------------------------------------------------------
@@ -96,7 +133,6 @@ def test_sample_command_on_a_shipped_model(model, action, shape, tmp_path):
         assert str(d["model"]) == (model[1] if model else "humanact12")  # the short name, not a path
 
 
-QUALITY_BARS = {"humanact12": (95.0, 0.25), "cmu_mocap": (88.0, 0.6)}  # Acc >=, FID <= (default-model issue)
 
 
 @pytest.mark.slow

@@ -29,8 +29,11 @@ def train(
     tf_epochs: Annotated[int, typer.Option("--tf-epochs", help="Teacher forcing decays 1 -> 0.3 over these epochs (0: all).")] = 0,
     ablate: Annotated[Optional[list[str]], typer.Option("--ablate", help="Drop a part: es, traj, cons, end-point (repeatable).")] = None,
     same_class: Annotated[Optional[float], typer.Option("--same-class-fraction", help="Share of same-action pairs (default 0.5, as the authors' release; -1: independent random pairs).")] = None,
-    sigma2: Annotated[Optional[float], typer.Option("--sigma2", help="ODMO: prior variance of the code posterior (eq. 1; default 0.05, the paper's; the release's code gives 0.0025).")] = None,
-    recon_weight: Annotated[Optional[float], typer.Option("--recon-weight", help="ODMO: weight of the reconstruction terms against L_es (default 1: means over clips; 2: the release's sum over each pair).")] = None,
+    preset: Annotated[str, typer.Option("--preset", help="ODMO loss scales: odmo (default: the release's plus what measured better), release (the authors' code) or paper (its text); docs/training.md.")] = "odmo",
+    sigma2: Annotated[Optional[float], typer.Option("--sigma2", help="ODMO: prior variance of the code posterior (eq. 1; paper 0.05, release 0.0025).")] = None,
+    recon_weight: Annotated[Optional[float], typer.Option("--recon-weight", help="ODMO: weight of the reconstruction terms against L_es (paper 1: means over clips; release 2: summed over each pair).")] = None,
+    vel_weight: Annotated[Optional[float], typer.Option("--vel-weight", help="ODMO: weight of the joint-velocity error L_vel (0: off, as in the paper and the release).")] = None,
+    tf_per: Annotated[Optional[str], typer.Option("--tf-per", help="ODMO: teacher-forcing coins per step (the release: one per time step for the batch) or per clip.")] = None,
     checkpoint_every: Annotated[int, typer.Option("--checkpoint-every", help="Epochs between checkpoints.")] = 25,
     val_every: Annotated[int, typer.Option("--val-every", help="Epochs between validation losses.")] = 10,
     out: Annotated[Optional[Path], typer.Option("--out", help="Checkpoint to write (default <model>.pt).")] = None,
@@ -52,7 +55,8 @@ def train(
         return _train_classifier(dataset, data, epochs, batch_size, lr, out, seed, threads, as_json)
     if model == "a2m":
         odmo_only = {"--ablate": ablate, "--same-class-fraction": same_class, "--lr-final": lr_final,
-                     "--sigma2": sigma2, "--recon-weight": recon_weight,
+                     "--sigma2": sigma2, "--recon-weight": recon_weight, "--vel-weight": vel_weight,
+                     "--tf-per": tf_per, "--preset": None if preset == "odmo" else preset,
                      "--tf-epochs": tf_epochs or None, "--device": None if device == "cpu" else device}
         for flag, value in odmo_only.items():
             if value is not None:
@@ -77,20 +81,30 @@ def train(
     bad = [a for a in ablate or [] if a not in ABLATIONS]
     if bad:
         raise UserError(f"unknown ablation {bad[0]!r}; valid: {', '.join(ABLATIONS)}")
+    from odmo_cli.models.odmo import PRESETS
+
+    if preset not in PRESETS:
+        raise UserError(f"unknown preset {preset!r}; valid: {', '.join(PRESETS)}")
+    if tf_per is not None and tf_per not in ("step", "clip"):
+        raise UserError(f"--tf-per must be step or clip, got {tf_per!r}")
     scales = {"sigma2": sigma2, "recon_weight": recon_weight}  # ODMOConfig fields, given as --sigma2, --recon-weight
     for key, value in scales.items():
         if value is not None and not value > 0:
             raise UserError(f"--{key.replace('_', '-')} must be a positive number, got {value}")
+    if vel_weight is not None and vel_weight < 0:
+        raise UserError(f"--vel-weight must not be negative, got {vel_weight}")
+    scales["vel_weight"] = vel_weight
     overrides = {"use_es": "es" not in (ablate or []), "use_traj": "traj" not in (ablate or []),
                  "use_cons": "cons" not in (ablate or []), "use_end_point": "end-point" not in (ablate or [])}
     overrides.update({k: v for k, v in scales.items() if v is not None})
     tc = TrainConfig(epochs=epochs, batch_size=batch_size, lr=lr, lr_final=lr if lr_final is None else lr_final,
                      tf_epochs=tf_epochs, checkpoint_every=checkpoint_every, val_every=val_every,
-                     seed=seed, threads=threads, same_class_fraction=0.5 if same_class is None else same_class)
+                     seed=seed, threads=threads, same_class_fraction=0.5 if same_class is None else same_class,
+                     tf_per=tf_per or "step")
     manifest, root = resolve_spec(dataset, data)
     clips = read_dataset(root, manifest)
     with _epoch_bar(epochs, as_json) as update, _interruptible(f"the last completed epoch is saved in {out}"):
-        result = train_odmo(clips, tc, out, overrides, resume, _epoch_log_progress(update))
+        result = train_odmo(clips, tc, out, overrides, resume, _epoch_log_progress(update), preset)
     if as_json:
         return print_json({"out": str(result.out), "epochs": result.epochs, "report": result.report})
     r = result.report
