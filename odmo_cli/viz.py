@@ -307,12 +307,12 @@ def draw_pose(ax, pose: np.ndarray, skeleton: Skeleton, centre: np.ndarray | Non
     return lines
 
 
-def live(draw, controls: dict):
+def live(draw, controls: dict) -> None:
     """Show the figure draw(**values) for the controls' current values now, and redraw it in place
     whenever a control (an ipywidgets ValueWidget, keyed by draw's argument name) changes.
 
     A static viewer or a headless run keeps the first figure (a PNG output); a live front end
-    updates it. Returns the display handle.
+    updates it. Returns nothing, so that a cell ending with it shows no extra output.
     """
     from IPython.display import display  # notebooks only: IPython is no dependency of the library
 
@@ -324,11 +324,10 @@ def live(draw, controls: dict):
     handle = display(figure(), display_id=True)
     for w in controls.values():
         w.observe(lambda _: handle.update(figure()), names="value")
-    return handle
 
 
 def animation_html(motions: np.ndarray, skeleton: Skeleton, titles: Sequence[str] | None = None,
-                   fps: float = 20.0, every: int = 2, dpi: int = 50, cell: float = 2.4,
+                   fps: float = 20.0, every: int = 2, dpi: int = 60, cell: float = 2.4,
                    cols: int | None = None) -> str:
     """Motions (N, T, J, 3) side by side as HTML/JS that plays in a notebook without a kernel
     (matplotlib's `to_jshtml`: every frame is a PNG inside the page, so keep it small).
@@ -354,6 +353,7 @@ def animation_html(motions: np.ndarray, skeleton: Skeleton, titles: Sequence[str
         floor = plot[i, ..., 2].min()
         ax.plot(plot[i, :, 0, 0], plot[i, :, 0, 1], np.full(len(plot[i]), floor), color="0.6", lw=1)
         lines.append(draw_pose(ax, motions[i, 0], skeleton, centre, radius))
+        ax.set_box_aspect((1, 1, 1), zoom=1.35)  # 3-D axes leave a wide margin by default
         ax.set_axis_off()
         if titles is not None:
             ax.set_title(titles[i], fontsize=8)
