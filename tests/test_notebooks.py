@@ -3,12 +3,13 @@
 Each notebook is executed with nbclient in a temporary folder; any error fails the test. The
 notebooks' own assert cells check their numbers (e.g. that the LMP and the trajectory rebuild the
 motion); then every control is moved once, which runs each redraw callback as a live front end would.
-Notebooks that load the shipped default model are skipped while it is not installed.
+Notebooks that load a shipped model are skipped while it is not installed.
 """
 
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import nbformat
@@ -20,7 +21,9 @@ from odmo_cli.ship import shipped_file
 
 REPO = Path(__file__).resolve().parents[1]
 NOTEBOOKS = sorted((REPO / "notebooks").glob("*.ipynb"))
-EXPECTED = ["01_lmp_decomposition", "02_spring_energy_prior", "03_gmm_mode_discovery", "04_lie_vs_xyz"]
+EXPECTED = ["01_lmp_decomposition", "02_spring_energy_prior", "03_gmm_mode_discovery", "04_lie_vs_xyz",
+            "05_model_and_training", "06_evaluation_metrics"]
+HELPERS = ("live", "draw_pose", "cube")  # odmo_cli.viz's notebook helpers: imported, never copied
 WIDGET = "application/vnd.jupyter.widget-view+json"
 PACKAGE_ROOT = Path(odmo_cli.__file__).resolve().parents[1]
 
@@ -48,24 +51,37 @@ def code_of(nb) -> str:
     return "\n".join(c.source for c in nb.cells if c.cell_type == "code")
 
 
-def test_the_four_notebooks_are_there_and_stored_clean():
+def test_the_six_notebooks_are_there_and_stored_clean():
     assert [p.stem for p in NOTEBOOKS] == EXPECTED
     for path in NOTEBOOKS:
         nb = nbformat.read(path, as_version=4)
         nbformat.validate(nb)
         code = [c for c in nb.cells if c.cell_type == "code"]
         assert all(not c.outputs and c.execution_count is None for c in code), f"{path.name} is stored with outputs"
-        assert nb.cells[0].cell_type == "markdown" and "teaches" in nb.cells[0].source, path.name
+        head = nb.cells[0]
+        assert head.cell_type == "markdown" and "teaches" in head.source, path.name
+        assert "Prerequisites" in head.source and "Run time" in head.source, f"{path.name}: say what it needs and how long it runs"
+        install = code[0].source
+        assert 'find_spec("odmo_cli") is None' in install and "%pip install" in install, f"{path.name}: no install cell first"
         assert nb.cells[-1].cell_type == "markdown" and "Exercise" in nb.cells[-1].source, path.name
+        exercises = nb.cells[-1].source
+        numbered = re.findall(r"^\d+\. ", exercises, flags=re.M)
+        assert numbered and exercises.count("<summary>Hint</summary>") == len(numbered), \
+            f"{path.name}: every exercise gets a hint"
         assert "from odmo_cli" in code_of(nb), path.name
         assert "nn.Module" not in code_of(nb), f"{path.name} defines a model: use odmo_cli's"
+        copied = [h for h in HELPERS if f"def {h}(" in code_of(nb)]
+        assert not copied, f"{path.name} defines {copied}: import them from odmo_cli.viz"
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
 def test_notebook_runs_headless(path, tmp_path):
     nb = nbformat.read(path, as_version=4)
-    if "load_odmo" in code_of(nb) and shipped_file("humanact12") is None:
+    if "load_odmo(None)" in code_of(nb) and shipped_file("humanact12") is None:
         pytest.skip(f"{path.name} needs the shipped default model odmo_cli/assets/models/odmo_humanact12.pt, "
+                    "not in this install yet")
+    if "shipped_classifier" in code_of(nb) and shipped_file("humanact12", "classifier_file") is None:
+        pytest.skip(f"{path.name} needs the shipped classifier odmo_cli/assets/models/classifier_humanact12.pt, "
                     "not in this install yet")
     # the kernel must import the odmo_cli under test, whether installed or on the test's path
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(PACKAGE_ROOT), os.environ.get("PYTHONPATH")])))
