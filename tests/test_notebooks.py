@@ -1,13 +1,16 @@
-"""The teaching notebooks (notebooks/*.ipynb) run headless from a clean kernel, top to bottom.
+"""The teaching notebooks (notebooks/*.ipynb) run headless from a clean kernel, top to bottom, and
+their executed copies (docs/notebooks/*.ipynb, written by `python notebooks/build.py`) are in sync.
 
 Each notebook is executed with nbclient in a temporary folder; any error fails the test. The
 notebooks' own assert cells check their numbers (e.g. that the LMP and the trajectory rebuild the
 motion); then every control is moved once, which runs each redraw callback as a live front end would.
-Notebooks that load a shipped model are skipped while it is not installed.
+Notebooks that load a shipped model are skipped while it is not installed. The sync test executes
+nothing: it compares the hashes each copy records with the sources and shipped models of today.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import re
 from pathlib import Path
@@ -51,6 +54,14 @@ def code_of(nb) -> str:
     return "\n".join(c.source for c in nb.cells if c.cell_type == "code")
 
 
+def load_build():
+    """notebooks/build.py as a module (it is a script, not part of the package)."""
+    spec = importlib.util.spec_from_file_location("notebook_build", REPO / "notebooks" / "build.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def test_the_six_notebooks_are_there_and_stored_clean():
     assert [p.stem for p in NOTEBOOKS] == EXPECTED
     for path in NOTEBOOKS:
@@ -72,6 +83,21 @@ def test_the_six_notebooks_are_there_and_stored_clean():
         assert "nn.Module" not in code_of(nb), f"{path.name} defines a model: use odmo_cli's"
         copied = [h for h in HELPERS if f"def {h}(" in code_of(nb)]
         assert not copied, f"{path.name} defines {copied}: import them from odmo_cli.viz"
+
+
+def test_executed_copies_are_in_sync():
+    """Each docs/notebooks/ copy exists, was built from today's source and with today's shipped models."""
+    build = load_build()
+    problems = [reason for source in NOTEBOOKS for reason in build.stale_reasons(source, build.COPIES / source.name)]
+    extra = sorted({p.name for p in build.COPIES.glob("*.ipynb")} - {p.name for p in NOTEBOOKS})
+    problems += [f"docs/notebooks/{name} has no source in notebooks/" for name in extra]
+    assert not problems, ("executed copies are out of date: " + "; ".join(problems)
+                          + f". Rebuild them with `{build.COMMAND}` (about 3 minutes) and commit docs/notebooks/")
+    for source in NOTEBOOKS:
+        copy = nbformat.read(build.COPIES / source.name, as_version=4)
+        kinds = [key for cell in copy.cells for out in cell.get("outputs", []) for key in out.get("data", {})]
+        assert "image/png" in kinds, f"docs/notebooks/{source.name} shows no figure"
+        assert not any(out.get("output_type") == "error" for cell in copy.cells for out in cell.get("outputs", []))
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
