@@ -114,6 +114,7 @@ def build(source: Path, timeout: int = 600) -> tuple[Path, float]:
     with tempfile.NamedTemporaryFile("w", dir=COPIES, prefix=f".{source.name}.", suffix=".tmp",
                                      delete=False, encoding="utf-8") as f:
         nbformat.write(nb, f)
+    os.chmod(f.name, 0o644)  # the temp file was made private; a copy is for everyone to read
     os.replace(f.name, copy)
     return copy, seconds
 
