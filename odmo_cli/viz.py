@@ -275,3 +275,112 @@ def latent_plot(codes: np.ndarray, colours: np.ndarray, names: Sequence[str], ou
         fig.savefig(tmp, dpi=100, format=out.suffix[1:])
     plt.close(fig)
     return out
+
+
+# -- Notebook helpers: live figures, stick figures and animations that play without a kernel ------------
+# Used by the teaching notebooks (notebooks/*.ipynb). Poses and motions are in the dataset's frame;
+# `cube` and the axis limits are in plot coordinates (`to_plot_frame`: ground_a, ground_b, up).
+
+
+def cube(points: np.ndarray, margin: float = 0.05) -> tuple[np.ndarray, float]:
+    """Centre (3,) and half-size of the smallest axis-aligned cube holding points (..., 3), plus margin."""
+    flat = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    lo, hi = flat.min(0), flat.max(0)
+    return (lo + hi) / 2, float((hi - lo).max() / 2 + margin)
+
+
+def draw_pose(ax, pose: np.ndarray, skeleton: Skeleton, centre: np.ndarray | None = None,
+              radius: float | None = None, color: str | None = None, alpha: float = 1.0) -> list:
+    """Draw one pose (J, 3) as a stick figure, up drawn up, in a 3-D axis: one line per chain of
+    the skeleton (colour C<k> for chain k, or `color` for all), inside the cube of half-size
+    `radius` around `centre` (plot coordinates; default: the pose's own `cube`). Returns the lines."""
+    p = to_plot_frame(np.asarray(pose, dtype=np.float64), skeleton)  # (J, 3)
+    if centre is None or radius is None:
+        centre, radius = cube(p)
+    lines = [ax.plot(*p[list(chain)].T, color=color or f"C{k}", lw=2, alpha=alpha)[0]
+             for k, chain in enumerate(skeleton.chains)]
+    for setter, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), centre):
+        setter(c - radius, c + radius)
+    ax.set_box_aspect((1, 1, 1))
+    ax.view_init(elev=15, azim=-70)
+    ax.set_xticklabels([]), ax.set_yticklabels([]), ax.set_zticklabels([])
+    return lines
+
+
+def live(draw, controls: dict) -> None:
+    """Show the figure draw(**values) for the controls' current values now, and redraw it in place
+    whenever a control (an ipywidgets ValueWidget, keyed by draw's argument name) changes.
+
+    A static viewer or a headless run keeps the first figure (a PNG output); a live front end
+    updates it. Returns nothing, so that a cell ending with it shows no extra output.
+    """
+    from IPython.display import display  # notebooks only: IPython is no dependency of the library
+
+    def figure():
+        fig = draw(**{name: w.value for name, w in controls.items()})
+        plt.close(fig)  # shown through the display handle only, not again at the end of the cell
+        return fig
+
+    handle = display(figure(), display_id=True)
+    for w in controls.values():
+        w.observe(lambda _: handle.update(figure()), names="value")
+
+
+def animation_html(motions: np.ndarray, skeleton: Skeleton, titles: Sequence[str] | None = None,
+                   fps: float = 20.0, every: int = 2, dpi: int = 60, cell: float = 2.4,
+                   cols: int | None = None) -> str:
+    """Motions (N, T, J, 3) side by side as HTML/JS that plays in a notebook without a kernel
+    (matplotlib's `to_jshtml`: every frame is a PNG inside the page, so keep it small).
+
+    Every `every`-th frame is kept and played at fps / every; each cell is `cell` inches at `dpi`,
+    with the root's path on the floor in grey and one fixed cube per motion. The first frame is
+    also the image's initial source, so a viewer that runs no JavaScript still shows a still.
+    """
+    motions = np.asarray(motions, dtype=np.float64)
+    if motions.ndim != 4 or motions.shape[2] != skeleton.n_joints or motions.shape[-1] != 3:
+        raise UserError(f"motions must be (N, T, {skeleton.n_joints}, 3), got {motions.shape}")
+    plot = to_plot_frame(motions, skeleton)  # (N, T, J, 3)
+    frames = list(range(0, motions.shape[1], max(1, int(every))))
+    n = len(motions)
+    cols = cols or min(n, 5)
+    rows = (n + cols - 1) // cols
+    fig = plt.figure(figsize=(cell * cols, cell * rows * 1.05))
+    fig.subplots_adjust(left=0, right=1, bottom=0, top=0.92, wspace=0, hspace=0.08)
+    lines = []
+    for i in range(n):
+        ax = fig.add_subplot(rows, cols, i + 1, projection="3d")
+        centre, radius = cube(plot[i])
+        floor = plot[i, ..., 2].min()
+        ax.plot(plot[i, :, 0, 0], plot[i, :, 0, 1], np.full(len(plot[i]), floor), color="0.6", lw=1)
+        lines.append(draw_pose(ax, motions[i, 0], skeleton, centre, radius))
+        ax.set_box_aspect((1, 1, 1), zoom=1.35)  # 3-D axes leave a wide margin by default
+        ax.set_axis_off()
+        if titles is not None:
+            ax.set_title(titles[i], fontsize=8)
+
+    def show(t: int):
+        for i, chain_lines in enumerate(lines):
+            for line, chain in zip(chain_lines, skeleton.chains):
+                pts = plot[i, t, list(chain)]
+                line.set_data_3d(pts[:, 0], pts[:, 1], pts[:, 2])
+        return [ln for group in lines for ln in group]
+
+    fig.set_dpi(dpi)
+    try:
+        anim = animation.FuncAnimation(fig, show, frames=frames, interval=1000 * max(1, int(every)) / fps,
+                                       blit=False)
+        html = anim.to_jshtml(fps=fps / max(1, int(every)), default_mode="loop")
+    finally:
+        plt.close(fig)
+    return _with_still(html)
+
+
+def _with_still(html: str) -> str:
+    """Give matplotlib's jshtml image its first frame as initial source (unchanged if not found)."""
+    import re
+
+    first = re.search(r'frames\[0\] = "(data:image/[a-z]+;base64,[^"]*)"', html)
+    img = re.search(r'<img id="(_anim_img[0-9a-f]+)">', html)
+    if not (first and img):
+        return html
+    return html.replace(img.group(0), f'<img id="{img.group(1)}" src="{first.group(1)}">', 1)
