@@ -35,12 +35,12 @@ from odmo_cli.io import load_checkpoint, save_checkpoint
 RECIPES = {
     "humanact12": {
         "odmo": {"epochs": 1000, "lr": 3e-3, "lr_final": 1e-4, "tf_epochs": 500, "threads": 2},
-        "classifier": {"epochs": 200, "speed": 2.0, "threads": 1},
+        "classifier": {"epochs": 200, "speed": 1.0, "threads": 1},
         "file": "odmo_humanact12.pt", "classifier_file": "classifier_humanact12.pt",
     },
     "cmu_mocap": {
         "odmo": {"epochs": 650, "lr": 3e-3, "lr_final": 1e-4, "tf_epochs": 325, "threads": 2},
-        "classifier": {"epochs": 100, "speed": 1.3, "threads": 1},
+        "classifier": {"epochs": 100, "speed": 1.0, "threads": 1},
         "file": "odmo_cmu.pt", "classifier_file": "classifier_cmu.pt",
     },
 }

@@ -320,7 +320,9 @@ class ClassifierTrainConfig:
     dropout: float = 0.0  # between GRU layers, training only
     rotate: float = 0.0  # augmentation: random rotation about the up axis, up to this many degrees
     mirror: bool = True  # augmentation: half the crops mirrored (left/right joints swapped)
-    speed: float = 2.0  # augmentation: playback speed drawn log-uniformly in [1/speed, speed]; 1: off
+    # augmentation: playback speed drawn log-uniformly in [1/speed, speed]; 1: off. Off by default:
+    # a classifier that has learnt a slowed-down punch is still a punch cannot see damped motion.
+    speed: float = 1.0
     noise: float = 0.0  # augmentation: std of Gaussian noise added to every coordinate (dataset units)
     val_fraction: float = 0.2
     # "shuffle": every training clip once per epoch; "length": every clip ceil(frames / T) times
