@@ -319,3 +319,30 @@ def test_real_datasets_fit_their_classifier_presets(data_dir):
         model = MotionClassifier(cfg)
         logits, feats = model.predict(clf.crop_batch(clips, np.arange(8), manifest.clip_length))
         assert logits.shape == (8, classes) and feats.shape == (8, 30)
+
+
+def test_a2m_release_with_extra_classes_scores_the_datasets_actions(tmp_path, monkeypatch):
+    """Action2Motion's MoCap classifier has 8 classes (with Wash); ODMO's CMU MoCap has 7: the
+    release is scored on those 7, by name, its Wash logit left out."""
+    from odmo_cli.data.manifest import load_manifest
+
+    manifest = load_manifest("cmu_mocap")
+    torch.manual_seed(0)
+    full = clf.MotionClassifier(clf.ClassifierConfig(input_size=60, n_classes=8, hidden=16, layers=2))
+    path = tmp_path / "mocap8.tar"
+    torch.save({"model": full.state_dict()}, path)
+    classes = ["walk", "wash", "run", "jump", "animal_behavior", "dance", "step", "climb"]
+    monkeypatch.setitem(clf.A2M_RELEASES, "mocap8.tar", {"sha256": clf.file_sha256(path), "dataset": "cmu_mocap",
+                                                         "classes": classes})
+    model = clf.load_classifier(path)
+    clf.check_matches(model, manifest)
+    motions = np.random.default_rng(0).normal(size=(5, 100, 20, 3)).astype(np.float32)
+    logits, feats = model.predict(motions)
+    all_logits, all_feats = full.eval().predict(motions)
+    np.testing.assert_allclose(logits, all_logits[:, [0, 2, 3, 4, 5, 6, 7]], rtol=1e-6)
+    np.testing.assert_allclose(feats, all_feats, rtol=1e-6)
+    # a file that is not that release (other weights, other hash) keeps the strict check
+    torch.save({"model": {k: v + 1 for k, v in full.state_dict().items()}}, tmp_path / "other.tar")
+    other = clf.load_classifier(tmp_path / "other.tar")
+    with pytest.raises(UserError, match="8 classes, the dataset has 7 actions"):
+        clf.check_matches(other, manifest)

@@ -67,7 +67,9 @@ A2M_RELEASES: dict[str, dict] = {
     "action_recognition_model_mocap_new.tar": {
         "sha256": "7ef619637e61934a57254642021d065adf8afd59f56be7c39f205eea064aa154",
         "dataset": "cmu_mocap", "n_classes": 8, "input_size": 60, "hidden": 128, "layers": 2,
-        "note": "8 classes including Wash; ODMO's 7-class CMU MoCap needs its own classifier",
+        "note": "8 classes including Wash, which ODMO drops: scored on ODMO's 7 by name (the Wash logit is left out)",
+        # its label order (Action2Motion's label_enc_rev_mocap.txt), as manifest action names
+        "classes": ["walk", "wash", "run", "jump", "animal_behavior", "dance", "step", "climb"],
     },
 }
 
@@ -131,6 +133,7 @@ class MotionClassifier(nn.Module):
         self.linear1 = nn.Linear(cfg.hidden, cfg.feature)
         self.linear2 = nn.Linear(cfg.feature, cfg.n_classes)
         self.info: dict = {}  # where the weights came from (set by load_classifier)
+        self.keep: list[int] | None = None  # logits kept, in the dataset's action order (set by check_matches)
 
     def _frames(self, motion) -> torch.Tensor:
         """(B, T, J, 3) or (B, T, J*3) -> (T, B, J*3) float32, with a clear error on a shape mismatch."""
@@ -155,7 +158,8 @@ class MotionClassifier(nn.Module):
         h0 = frames.new_zeros(self.cfg.layers, frames.shape[1], self.cfg.hidden)
         out, _ = self.recurrent(frames, h0)
         feature = torch.tanh(self.linear1(out[-1]))
-        return self.linear2(feature), feature
+        logits = self.linear2(feature)
+        return (logits if self.keep is None else logits[:, self.keep]), feature
 
     def forward(self, motion) -> torch.Tensor:
         return self.logits_and_features(motion)[0]
@@ -300,7 +304,15 @@ def _check_expectations(cfg: ClassifierConfig, expect_classes: int | None, expec
 
 
 def check_matches(model: MotionClassifier, manifest: Manifest) -> None:
-    """UserError unless the classifier fits the dataset's skeleton and number of actions."""
+    """UserError unless the classifier fits the dataset's skeleton and number of actions. An
+    Action2Motion release whose classes include all of the dataset's (its MoCap file has Wash, which
+    ODMO drops) is scored on those: its logits are taken in the dataset's action order."""
+    release = A2M_RELEASES.get(model.info.get("release") or "", {})
+    classes, actions = release.get("classes"), list(manifest.action_names)
+    if classes and set(actions) <= set(classes) and len(classes) == model.cfg.n_classes:
+        _check_expectations(model.cfg, None, 3 * manifest.skeleton.n_joints)
+        model.keep = [classes.index(a) for a in actions]
+        return
     _check_expectations(model.cfg, len(manifest.actions), 3 * manifest.skeleton.n_joints)
 
 
