@@ -118,6 +118,65 @@ def test_ablation_switches_change_the_total():
     assert losses.total_loss(terms, tiny_config(recon_weight=2.0, use_traj=False)).item() == 14.0
 
 
+def circling(T: int = 60, J: int = 4, radius: float = 0.2, phase: float = 0.0) -> torch.Tensor:
+    """Every non-root joint circles its rest offset with the same radius: (1, T, J, 3)."""
+    t = torch.arange(T, dtype=torch.float64) * 2 * math.pi / 30 + phase
+    m = torch.zeros(1, T, J, 3, dtype=torch.float64)
+    m[0, :, 1:, 0] = radius * torch.cos(t)[:, None] + torch.arange(1, J)
+    m[0, :, 1:, 2] = radius * torch.sin(t)[:, None]
+    m[0, :, :, 0] += 0.05 * torch.arange(T)[:, None]  # the root's walk is not the body's motion
+    return m
+
+
+def test_body_motion_stats_match_the_metrics():
+    from odmo_cli import metrics
+
+    motion = torch.randn(5, 40, 6, 3, dtype=torch.float64).cumsum(1) * 0.01
+    speed, amplitude = losses.body_motion_stats(motion)  # (5, 5) each: per clip and joint
+    assert speed.shape == (5, 5)
+    assert np.allclose(speed.mean(1).numpy(), metrics.body_speed(motion.numpy()), atol=1e-6)
+    assert np.allclose(amplitude.mean(1).numpy(), metrics.body_amplitude(motion.numpy()), atol=1e-6)
+
+
+def test_energy_error_known_values():
+    target = circling()
+    assert losses.energy_error(target, target).item() == pytest.approx(0.0, abs=1e-9)
+    # phase-blind: the same circles half a turn later ask for no change
+    assert losses.energy_error(circling(phase=math.pi), target).item() == pytest.approx(0.0, abs=1e-9)
+    # circles of half the radius: speed and amplitude both off by half -> 0.25 + 0.25
+    assert losses.energy_error(circling(radius=0.1), target).item() == pytest.approx(0.5, rel=1e-6)
+    # a body that stands still against one that does not: 1 + 1
+    still = circling(radius=0.0)
+    assert losses.energy_error(still, target).item() == pytest.approx(2.0, rel=1e-4)  # sqrt(x + 1e-12)
+    # a still target is not divided by zero: the floor (0.005 per frame) takes over
+    assert torch.isfinite(losses.energy_error(target, still)).all()
+    assert losses.energy_error(still, still).item() == pytest.approx(0.0, abs=1e-9)
+
+
+def test_energy_error_has_finite_gradients_and_pushes_motion_out():
+    target = circling()
+    pred = circling(radius=0.1).requires_grad_(True)
+    losses.energy_error(pred, target).sum().backward()
+    assert torch.isfinite(pred.grad).all()
+    still = circling(radius=0.0).requires_grad_(True)  # the square root's gradient at zero motion
+    losses.energy_error(still, target).sum().backward()
+    assert torch.isfinite(still.grad).all()
+    # a gradient step grows the small circles: their error goes down
+    stepped = (pred - 0.05 * pred.grad).detach()
+    assert losses.energy_error(stepped, target).item() < losses.energy_error(pred.detach(), target).item()
+
+
+def test_energy_weight_enters_the_total():
+    terms = {"mre": torch.tensor(1.0), "es": torch.tensor(2.0), "vae": torch.tensor(3.0),
+             "r": torch.tensor(4.0), "cons": torch.tensor(5.0), "vel": torch.tensor(0.5),
+             "energy": torch.tensor(0.25)}
+    assert losses.total_loss(terms, tiny_config()).item() == 12.0
+    assert losses.total_loss(terms, tiny_config(energy_weight=4.0)).item() == 13.0
+    assert losses.total_loss(terms, tiny_config(energy_weight=4.0, recon_weight=2.0)).item() == 24.0
+    with pytest.raises(ValueError, match="energy_weight must be non-negative"):
+        tiny_config(energy_weight=-1.0)
+
+
 # -- model -----------------------------------------------------------------------------------
 
 def test_condition_is_the_flattened_outer_product():
@@ -305,10 +364,10 @@ def test_cli_train_and_info(tmp_path):
     out = tmp_path / "m.pt"
     res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--epochs", "1",
                               "--batch-size", "8", "--out", str(out), "--json", "--sigma2", "0.0025",
-                              "--recon-weight", "2"])
+                              "--recon-weight", "2", "--energy-weight", "1.5"])
     assert res.exit_code == 0, res.output
     config = torch.load(out, weights_only=True)["config"]
-    assert config["sigma2"] == 0.0025 and config["recon_weight"] == 2.0
+    assert config["sigma2"] == 0.0025 and config["recon_weight"] == 2.0 and config["energy_weight"] == 1.5
     res = runner.invoke(app, ["info", str(out), "--json"])
     assert res.exit_code == 0 and '"kind": "odmo"' in res.stdout and '"weights": "float32"' in res.stdout
 
@@ -321,6 +380,7 @@ def test_cli_train_and_info(tmp_path):
     (["--sigma2", "0"], "--sigma2 must be a positive number, got 0.0"),
     (["--recon-weight", "-1"], "--recon-weight must be a positive number, got -1.0"),
     (["--same-class-fraction", "1.5"], "--same-class-fraction must be in [0, 1] (or -1: independent pairs), got 1.5"),
+    (["--energy-weight", "-1"], "--energy-weight must not be negative, got -1.0"),
 ])
 def test_cli_train_bad_input(tmp_path, args, message):
     out = tmp_path / "m.pt"

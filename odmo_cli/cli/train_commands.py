@@ -33,6 +33,7 @@ def train(
     sigma2: Annotated[Optional[float], typer.Option("--sigma2", help="ODMO: prior variance of the code posterior (eq. 1; paper 0.05, release 0.0025).")] = None,
     recon_weight: Annotated[Optional[float], typer.Option("--recon-weight", help="ODMO: weight of the reconstruction terms against L_es (paper 1: means over clips; release 2: summed over each pair).")] = None,
     vel_weight: Annotated[Optional[float], typer.Option("--vel-weight", help="ODMO: weight of the joint-velocity error L_vel (0: off, as in the paper and the release).")] = None,
+    energy_weight: Annotated[Optional[float], typer.Option("--energy-weight", help="ODMO: weight of L_energy, each joint's speed and amplitude about the root against the clip's (0: off, as in the paper and the release).")] = None,
     tf_per: Annotated[Optional[str], typer.Option("--tf-per", help="ODMO: teacher-forcing coins per step (the release: one per time step for the batch) or per clip.")] = None,
     checkpoint_every: Annotated[int, typer.Option("--checkpoint-every", help="Epochs between checkpoints.")] = 25,
     val_every: Annotated[int, typer.Option("--val-every", help="Epochs between validation losses.")] = 10,
@@ -56,7 +57,7 @@ def train(
     if model == "a2m":
         odmo_only = {"--ablate": ablate, "--same-class-fraction": same_class, "--lr-final": lr_final,
                      "--sigma2": sigma2, "--recon-weight": recon_weight, "--vel-weight": vel_weight,
-                     "--tf-per": tf_per, "--preset": None if preset == "odmo" else preset,
+                     "--energy-weight": energy_weight, "--tf-per": tf_per, "--preset": None if preset == "odmo" else preset,
                      "--tf-epochs": tf_epochs or None, "--device": None if device == "cpu" else device}
         for flag, value in odmo_only.items():
             if value is not None:
@@ -91,9 +92,10 @@ def train(
     for key, value in scales.items():
         if value is not None and not value > 0:
             raise UserError(f"--{key.replace('_', '-')} must be a positive number, got {value}")
-    if vel_weight is not None and vel_weight < 0:
-        raise UserError(f"--vel-weight must not be negative, got {vel_weight}")
-    scales["vel_weight"] = vel_weight
+    for flag, value in (("--vel-weight", vel_weight), ("--energy-weight", energy_weight)):
+        if value is not None and value < 0:
+            raise UserError(f"{flag} must not be negative, got {value}")
+    scales.update(vel_weight=vel_weight, energy_weight=energy_weight)
     overrides = {"use_es": "es" not in (ablate or []), "use_traj": "traj" not in (ablate or []),
                  "use_cons": "cons" not in (ablate or []), "use_end_point": "end-point" not in (ablate or [])}
     overrides.update({k: v for k, v in scales.items() if v is not None})

@@ -54,6 +54,30 @@ def sequence_error(pred: torch.Tensor, target: torch.Tensor, weights: torch.Tens
     return err.flatten(2).mean(-1).sum(-1)
 
 
+def body_motion_stats(motion: torch.Tensor, smooth: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per clip and joint: speed (mean norm of the frame-to-frame change) and amplitude (RMS distance
+    from the mean position) of the joints about the root, after a `smooth`-frame moving average:
+    (B, T, J, 3) -> (B, J-1), (B, J-1). The differentiable twin of metrics.body_speed/body_amplitude."""
+    body = motion[:, :, 1:] - motion[:, :, :1]  # (B, T, J-1, 3)
+    if smooth > 1:
+        body = body.unfold(1, smooth, 1).mean(-1)  # (B, T - smooth + 1, J-1, 3)
+    speed = torch.sqrt(body.diff(dim=1).pow(2).sum(-1) + 1e-12).mean(1)
+    amplitude = torch.sqrt((body - body.mean(1, keepdim=True)).pow(2).sum(-1).mean(1) + 1e-12)
+    return speed, amplitude
+
+
+def energy_error(pred: torch.Tensor, target: torch.Tensor, floor: float = 0.005) -> torch.Tensor:
+    """How far a motion's speed and amplitude about the root are from its target's, relative to the
+    target's (phase-blind: it asks for as much motion, not for the same frames): (B,).
+
+    Each joint's error is divided by the target clip's mean over joints, floored at `floor` (units
+    per frame, or units) so that clips that hardly move do not dominate."""
+    (sp, ap), (st, at) = body_motion_stats(pred), body_motion_stats(target)
+    ns = st.mean(1, keepdim=True).clamp_min(floor)
+    na = at.mean(1, keepdim=True).clamp_min(floor)
+    return (((sp - st) / ns).pow(2) + ((ap - at) / na).pow(2)).mean(1)
+
+
 def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> dict[str, torch.Tensor]:
     """All loss terms for a batch whose first half is paired index-wise with its second half.
 
@@ -68,6 +92,7 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
     l_mre = sequence_error(out["motion"], motion, w)
     l_cons = sequence_error(out["trajectory"], out["motion"][:, :, 0])
     l_vel = sequence_error(out["motion"].diff(dim=1), motion.diff(dim=1), w)
+    l_energy = energy_error(out["motion"], motion) if cfg.energy_weight else torch.zeros(len(motion))
     half = len(motion) // 2
     mu, logvar = out["mu"], out["logvar"]
     same = labels[:half] == labels[half:]
@@ -79,6 +104,7 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
         "mre": l_mre.mean(),
         "cons": l_cons.mean(),
         "vel": l_vel.mean(),
+        "energy": l_energy.mean(),
         "vae": standard_kl(mu, logvar).mean() * 2,
     }
 
@@ -89,6 +115,8 @@ def total_loss(terms: dict[str, torch.Tensor], cfg) -> torch.Tensor:
     recon = terms["mre"]
     if cfg.vel_weight:
         recon = recon + cfg.vel_weight * terms["vel"]
+    if cfg.energy_weight:
+        recon = recon + cfg.energy_weight * terms["energy"]
     if cfg.use_traj:
         recon = recon + terms["r"]
     if cfg.use_cons:

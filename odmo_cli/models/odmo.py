@@ -44,6 +44,10 @@ class ODMOConfig:
     # the release; 0 turns it off). Position errors alone let the free-running decoder drift to an
     # average, slow pose; velocity errors weight the fast parts of a motion that drift loses.
     vel_weight: float = 0.0
+    # weight of L_energy, the relative error of each joint's speed and amplitude about the root
+    # (losses.energy_error; not in the paper nor the release). Squared position errors reward a
+    # decoder that hedges between phases with a slow, small average motion; this term does not.
+    energy_weight: float = 0.0
 
     @classmethod
     def from_dict(cls, d: dict) -> "ODMOConfig":
@@ -58,8 +62,8 @@ class ODMOConfig:
             raise ValueError(f"traj_loss must be position or velocity, got {self.traj_loss!r}")
         if not (self.sigma2 > 0 and self.recon_weight > 0):
             raise ValueError(f"sigma2 and recon_weight must be positive, got {self.sigma2} and {self.recon_weight}")
-        if self.vel_weight < 0:
-            raise ValueError(f"vel_weight must be non-negative, got {self.vel_weight}")
+        if self.vel_weight < 0 or self.energy_weight < 0:
+            raise ValueError(f"vel_weight and energy_weight must be non-negative, got {self.vel_weight}, {self.energy_weight}")
 
 
 # The loss scales `odmo train` and `odmo ship` use, per dataset: value and source. ODMOConfig's own
