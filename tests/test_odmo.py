@@ -389,3 +389,17 @@ def test_cli_train_bad_input(tmp_path, args, message):
     assert res.exit_code == 2
     assert message in res.stderr and res.stderr.count("\n") == 1
     assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_presets_per_dataset():
+    from odmo_cli.models.odmo import preset_values
+
+    assert preset_values("paper", "humanact12") == {}
+    assert preset_values("release", "humanact12") == {"sigma2": 0.0025, "recon_weight": 2.0, "up_weight": 5.0}
+    assert preset_values("release", "cmu_mocap")["up_weight"] == 1.0
+    # the default adds L_energy to the release's scales, for every dataset
+    assert preset_values("odmo", "cmu_mocap") == {"sigma2": 0.0025, "recon_weight": 2.0, "up_weight": 1.0,
+                                                  "energy_weight": 2.0}
+    assert preset_values("odmo", "my_dataset") == {"sigma2": 0.0025, "recon_weight": 2.0, "energy_weight": 2.0}
+    with pytest.raises(ValueError, match="unknown preset 'best'; valid: paper, release, odmo"):
+        preset_values("best", "humanact12")
