@@ -3,7 +3,6 @@
 Each notebook is executed with nbclient in a temporary folder; any error fails the test. The
 notebooks' own assert cells check their numbers (e.g. that the LMP and the trajectory rebuild the
 motion); then every control is moved once, which runs each redraw callback as a live front end would.
-Notebooks that load the shipped default model are skipped while it is not installed.
 """
 
 from __future__ import annotations
@@ -16,7 +15,6 @@ import pytest
 from nbclient import NotebookClient
 
 import odmo_cli
-from odmo_cli.ship import shipped_file
 
 REPO = Path(__file__).resolve().parents[1]
 NOTEBOOKS = sorted((REPO / "notebooks").glob("*.ipynb"))
@@ -64,9 +62,6 @@ def test_the_four_notebooks_are_there_and_stored_clean():
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
 def test_notebook_runs_headless(path, tmp_path):
     nb = nbformat.read(path, as_version=4)
-    if "load_odmo" in code_of(nb) and shipped_file("humanact12") is None:
-        pytest.skip(f"{path.name} needs the shipped default model odmo_cli/assets/models/odmo_humanact12.pt, "
-                    "not in this install yet")
     # the kernel must import the odmo_cli under test, whether installed or on the test's path
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(PACKAGE_ROOT), os.environ.get("PYTHONPATH")])))
     nb.cells.append(nbformat.v4.new_code_cell(NUDGE))

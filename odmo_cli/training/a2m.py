@@ -1,43 +1,34 @@
-"""Training Action2Motion: Adam with weight decay, teacher forcing drawn per sequence, eq. (9).
-
-The checkpoint format, the run loop (validation and checkpoints at intervals, Ctrl-C keeps the
-last completed epoch) and exact resume are ODMO's `Trainer`; only the model, the optimizer and
-one epoch differ. An epoch visits every training clip once, in random order, at a random crop.
+"""Training Action2Motion (Guo et al. 2020, eq. 9) on the shared loop: Adam with weight decay,
+teacher forcing drawn per sequence. An epoch visits every training clip once, in random order,
+at a random T-frame crop.
 """
 
 from __future__ import annotations
 
-import time
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
 
-from odmo_cli.data.dataset import MotionDataset, split_indices
+from odmo_cli.data.dataset import MotionDataset, crops_from_start
 from odmo_cli.data.readers import ClipSet
-from odmo_cli.errors import TrainingError, UserError
-from odmo_cli.io import load_checkpoint
-from odmo_cli.lie import bone_lengths_from_pose
+from odmo_cli.errors import UserError
+from odmo_cli.geometry.lie import bone_lengths_from_pose
 from odmo_cli.models.a2m import A2M, A2MConfig, a2m_terms, paper_lambda_kl
-from odmo_cli.train import EpochLog, Trainer, TrainResult, crops_from_start, resumed_config, seeded_start
+from odmo_cli.parallel import thread_count
+from odmo_cli.training.loop import LoopConfig, Progress, Trainer, TrainResult
 
 
 @dataclass
-class A2MTrainConfig:
+class A2MTrainConfig(LoopConfig):
     epochs: int = 500  # the paper gives iterations, not epochs; ~9 steps per HumanAct12 epoch
     batch_size: int = 128  # A.2
-    lr: float = 2e-4  # A.2, Adam with betas (0.9, 0.999)
+    lr: float = 2e-4  # A.2, Adam with betas (0.9, 0.999); constant (lr_final 0)
     weight_decay: float = 1e-5  # A.2
     teacher_rate: float = 0.6  # p_tf (§3.2.3, A.2)
     lambda_kl: float = -1.0  # < 0: the paper's value for the dataset (0.01 HumanAct12, else 0.1)
-    val_fraction: float = 0.1
-    val_every: int = 10  # epochs between validation losses
-    checkpoint_every: int = 25
     grad_clip: float = 0.0  # 0: no clipping (the paper does not clip)
-    seed: int = 0
-    threads: int = 0  # torch intra-op threads; 0 leaves torch's default
 
     def __post_init__(self):
         if self.epochs <= 0 or self.batch_size <= 0:
@@ -46,11 +37,7 @@ class A2MTrainConfig:
             raise UserError(f"learning rate must be positive and weight decay >= 0, got {self.lr}, {self.weight_decay}")
         if not 0 <= self.teacher_rate <= 1:
             raise UserError(f"teacher-forcing rate must be in [0, 1], got {self.teacher_rate}")
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "A2MTrainConfig":
-        known = {f.name for f in fields(cls)}
-        return cls(**{k: v for k, v in d.items() if k in known})
+        super().__post_init__()
 
 
 def a2m_config_for(clips: ClipSet, representation: str = "lie", overrides: dict | None = None) -> A2MConfig:
@@ -70,48 +57,44 @@ def bone_bank(clips: ClipSet, idx: np.ndarray, k: int, seed: int) -> torch.Tenso
 
 class A2MTrainer(Trainer):
     kind = "a2m"
+    config_class = A2MConfig
+    min_train_clips = 1
 
     def __init__(self, clips: ClipSet, cfg: A2MConfig, tc: A2MTrainConfig, out: Path):
-        # not Trainer.__init__, which builds ODMO; the attributes are the ones Trainer's methods use
         if tc.lambda_kl < 0:  # resolved here so the checkpoint's train config shows the value used
             tc = replace(tc, lambda_kl=paper_lambda_kl(clips.manifest.name))
-        self.clips, self.cfg, self.tc, self.out = clips, cfg, tc, Path(out)
-        self.np_rng, self.torch_gen = seeded_start(tc)
-        self.model = A2M(cfg)
-        self.opt = torch.optim.Adam(self.model.parameters(), lr=tc.lr, weight_decay=tc.weight_decay)
-        self.train_idx, self.val_idx = split_indices(clips, tc.val_fraction, tc.seed)
-        if len(self.train_idx) < 1:
-            raise UserError("need at least 1 training clip")
-        self.model.bone_bank.copy_(bone_bank(clips, self.train_idx, cfg.bank_size, tc.seed))
-        self.data = MotionDataset(clips, cfg.length, rng=self.np_rng)
         self.lambda_kl = tc.lambda_kl
-        self.epoch = 0
-        self.history: list[dict] = []
+        super().__init__(clips, cfg, tc, out)
 
-    def train_epoch(self) -> EpochLog:
-        tc, model = self.tc, self.model
+    def build_model(self) -> A2M:
+        return A2M(self.cfg)
+
+    def build_optimizers(self) -> dict:
+        return {"optimizer": torch.optim.Adam(self.model.parameters(), lr=self.tc.lr,
+                                              weight_decay=self.tc.weight_decay)}
+
+    def setup(self) -> None:
+        self.model.bone_bank.copy_(bone_bank(self.clips, self.train_idx, self.cfg.bank_size, self.tc.seed))
+        self.data = MotionDataset(self.clips, self.cfg.length, rng=self.np_rng)
+
+    def train_epoch(self) -> dict[str, float]:
+        tc, model, opt = self.tc, self.model, self.optimizers["optimizer"]
         model.train()
         order = self.train_idx[self.np_rng.permutation(len(self.train_idx))]
         sums: dict[str, float] = {}
-        start = time.perf_counter()
         for b in range(0, len(order), tc.batch_size):
             motion, labels = self.data.batch(order[b:b + tc.batch_size])  # (B, T, J, 3), (B,)
             teacher = torch.rand(len(labels), generator=self.torch_gen) < tc.teacher_rate  # (B,) per sequence
             terms = a2m_terms(model, motion, labels, teacher, self.lambda_kl, self.torch_gen)
-            if not torch.isfinite(terms["loss"]):
-                raise TrainingError(f"non-finite loss at epoch {self.epoch + 1}; "
-                                    f"the last good checkpoint is kept at {self.out}")
-            self.opt.zero_grad(set_to_none=True)
+            self.check_finite(terms["loss"])
+            opt.zero_grad(set_to_none=True)
             terms["loss"].backward()
             if tc.grad_clip > 0:
                 torch.nn.utils.clip_grad_norm_(model.parameters(), tc.grad_clip)
-            self.opt.step()
+            opt.step()
             for k, v in terms.items():
                 sums[k] = sums.get(k, 0.0) + float(v.detach()) * len(labels)
-        seconds = time.perf_counter() - start
-        self.epoch += 1
-        return EpochLog(self.epoch, seconds, len(order) / seconds, tc.teacher_rate, tc.lr,
-                        {k: v / len(order) for k, v in sums.items()})
+        return {"clips": len(order), "teacher": tc.teacher_rate, **{k: v / len(order) for k, v in sums.items()}}
 
     @torch.no_grad()
     def validate(self, batch: int = 256) -> dict[str, float]:
@@ -130,29 +113,24 @@ class A2MTrainer(Trainer):
 
 
 def train_a2m(clips: ClipSet, tc: A2MTrainConfig, out: Path, representation: str | None = None,
-              resume: Path | None = None, progress: Callable[[EpochLog], None] | None = None,
+              resume: Path | None = None, progress: Progress | None = None,
               overrides: dict | None = None) -> TrainResult:
     """Train Action2Motion on clips (or resume a checkpoint); the final checkpoint holds a report.
 
     representation: "xyz" or "lie" (None: "lie", or the resumed checkpoint's).
     """
-    if resume is not None:
-        ckpt = load_checkpoint(resume)
-        if ckpt.get("kind") != "a2m":
-            raise UserError(f"cannot resume: {resume} holds a {ckpt.get('kind')!r} model, not a2m")
-        cfg = A2MConfig.from_dict(ckpt["config"])
-        if representation not in (None, cfg.representation):
-            raise UserError(f"cannot resume: {resume} is an a2m-{cfg.representation} model, "
-                            f"not {representation}")
-        tc = resumed_config(ckpt["train_config"], tc)
-        trainer = A2MTrainer(clips, cfg, tc, out)
-        trainer.load_state(ckpt)
-    else:
-        trainer = A2MTrainer(clips, a2m_config_for(clips, representation or "lie", overrides), tc, out)
-    history = trainer.run(progress)
-    held = trainer.val_idx if len(trainer.val_idx) else trainer.train_idx
-    report = {"held_out_clips": int(len(held)), **{f"held_out_{k}": v for k, v in trainer.validate().items()},
-              "lambda_kl": trainer.lambda_kl, "representation": trainer.cfg.representation,
-              "bone_bank": int(len(trainer.model.bone_bank))}
-    trainer.save({"report": report})
-    return TrainResult(Path(out), trainer.epoch, history, report)
+    with thread_count(tc.threads):
+        if resume is not None:
+            trainer = A2MTrainer.resumed(resume, clips, tc, out)
+            if representation not in (None, trainer.cfg.representation):
+                raise UserError(f"cannot resume: {resume} is an a2m-{trainer.cfg.representation} model, "
+                                f"not {representation}")
+        else:
+            trainer = A2MTrainer(clips, a2m_config_for(clips, representation or "lie", overrides), tc, out)
+        history = trainer.run(progress)
+        held = trainer.val_idx if len(trainer.val_idx) else trainer.train_idx
+        report = {"held_out_clips": int(len(held)), **{f"held_out_{k}": v for k, v in trainer.validate().items()},
+                  "lambda_kl": trainer.lambda_kl, "representation": trainer.cfg.representation,
+                  "bone_bank": int(len(trainer.model.bone_bank))}
+        trainer.save({"report": report})
+        return TrainResult(Path(out), trainer.epoch, history, report)
