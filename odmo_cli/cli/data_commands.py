@@ -9,12 +9,13 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from odmo_cli.cli.common import (DataOpt, DatasetArg, DemoOpt, JsonOpt, SeedOpt, print_json, resolve_spec, console, data_app, err_console)
+from odmo_cli.cli.common import (DataOpt, DatasetArg, DemoOpt, JsonOpt, SeedOpt, WideOpt, console, data_app, err_console,
+                                 print_json, resolve_spec)
 from odmo_cli.errors import UserError
 
 
 @data_app.command("list")
-def data_list(data: DataOpt = None, as_json: JsonOpt = False):
+def data_list(data: DataOpt = None, as_json: JsonOpt = False, wide: WideOpt = False):
     """Table of known datasets and whether each is on disk."""
     from odmo_cli.data.locate import data_root, find_release
     from odmo_cli.data.manifest import available_manifests, load_manifest
@@ -28,13 +29,19 @@ def data_list(data: DataOpt = None, as_json: JsonOpt = False):
                      "present": str(where) if where else None})
     if as_json:
         return print_json({"data_root": str(data_root(data)), "datasets": rows})
-    table = Table(title=f"datasets (data root: {data_root(data)})")
-    for col in ("name", "title", "actions", "clips", "skeleton", "on disk"):
-        table.add_column(col)
+    table = Table(title="datasets")
+    columns = ("name", "title", "actions", "clips", "skeleton", "on disk") if wide else ("name", "actions", "clips",
+                                                                                          "skeleton", "on disk")
+    for col in columns:
+        table.add_column(col, no_wrap=col in ("name", "on disk"))
     for r in rows:
-        table.add_row(r["name"], r["title"], str(r["actions"]), str(r["clips"]), r["skeleton"],
-                      r["present"] or "[dim]no[/dim]")
+        cells = {"name": r["name"], "title": r["title"], "actions": str(r["actions"]), "clips": str(r["clips"]),
+                 "skeleton": r["skeleton"]}
+        cells["on disk"] = (r["present"] if wide else "yes") if r["present"] else "[dim]no[/dim]"
+        table.add_row(*(cells[c] for c in columns))
     console.print(table)
+    console.print(f"data root: {data_root(data)}" + ("" if wide else " (titles and folders: --wide)"),
+                  highlight=False, soft_wrap=True)
 
 
 @data_app.command("info")
