@@ -248,6 +248,17 @@ def cmu_fixture(tmp_path: Path) -> Path:
 # ============================ end of the datasets section ============================
 
 
+@pytest.fixture
+def one_thread():
+    """torch at one thread for the test, the previous count restored after."""
+    import torch
+
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
 # =====================================================================================
 # A tiny trained ODMO: straight-line motions of a rigid body (test_generate, test_evaluate).
 # =====================================================================================

@@ -203,20 +203,6 @@ def test_cli_eval_compares_xyz_and_lie_models_in_one_table(tmp_path):
     assert all(np.isfinite(m["fid"][0]) for m in rows.values())
 
 
-@pytest.mark.parametrize("kind, args, message", [
-    ("a2m", ["--representation", "quat"], "unknown representation 'quat'; valid: xyz, lie"),
-    ("odmo", ["--representation", "lie"], "--representation does not apply to `odmo train odmo`"),
-    ("a2m", ["--ablate", "es"], "--ablate does not apply to `odmo train a2m`"),
-    ("a2m", ["--epochs", "0"], "epochs and batch size must be positive"),
-])
-def test_cli_bad_a2m_options(tmp_path, kind, args, message):
-    out = tmp_path / "m.pt"
-    res = CliRunner().invoke(app, ["train", kind, "--dataset", str(demo_folder("humanact12")), "--out", str(out), *args])
-    assert res.exit_code == 2
-    assert message in res.stderr and res.stderr.count("\n") == 1
-    assert not out.exists()
-
-
 def test_cmu_skeleton_lie_model():
     manifest, root = resolve(demo_folder("cmu"))
     cmu = read_dataset(root, manifest)

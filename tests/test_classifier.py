@@ -23,12 +23,7 @@ from odmo_cli.training import classifier as train_clf
 from odmo_cli.training.classifier import ClassifierTrainConfig, train_classifier
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")

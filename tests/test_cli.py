@@ -75,6 +75,42 @@ def test_an_option_of_another_model_is_refused_before_any_work(kind, tmp_path, m
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("kind, args, message", [
+    # ODMO (`odmo train` without a kind is ODMO)
+    (None, ["--ablate", "nope"], "unknown ablation 'nope'; valid: es, traj, cons, end-point"),
+    (None, ["--epochs", "0"], "epochs and batch size must be positive"),
+    (None, ["--resume", "missing.pt"], "checkpoint not found"),
+    (None, ["--sigma2", "0"], "--sigma2 must be a positive number, got 0.0"),
+    (None, ["--recon-weight", "-1"], "--recon-weight must be a positive number, got -1.0"),
+    (None, ["--same-class-fraction", "1.5"], "--same-class-fraction must be in [0, 1] (or -1: independent pairs), got 1.5"),
+    ("odmo", ["--representation", "lie"], "--representation does not apply to `odmo train odmo`"),
+    ("odmo", ["--generator", "rnn"], "--generator does not apply to `odmo train odmo`"),
+    # Action2Motion
+    ("a2m", ["--representation", "quat"], "unknown representation 'quat'; valid: xyz, lie"),
+    ("a2m", ["--ablate", "es"], "--ablate does not apply to `odmo train a2m`"),
+    ("a2m", ["--epochs", "0"], "epochs and batch size must be positive"),
+    ("a2m", ["--n-critic", "5"], "--n-critic does not apply to `odmo train a2m`"),
+    # DVGAN
+    ("dvgan", ["--generator", "transformer"], "unknown DVGAN generator 'transformer'; valid: cnn, rnn"),
+    ("dvgan", ["--epochs", "0"], "epochs, batch size and n_critic must be positive"),
+    ("dvgan", ["--resume", "missing.pt"], "checkpoint not found"),
+    ("dvgan", ["--n-critic", "0"], "epochs, batch size and n_critic must be positive"),
+    # the classifier
+    ("classifier", ["--epochs", "0"], "epochs and batch size must be positive"),
+    ("classifier", ["--resume", "missing.pt"], "checkpoint not found"),
+    # no such model
+    ("gan", [], "unknown model 'gan'; valid: odmo, classifier, a2m, dvgan"),
+])
+def test_cli_train_bad_input(tmp_path, kind, args, message):
+    """One line on stderr, exit 2, nothing written."""
+    out = tmp_path / "m.pt"
+    res = CliRunner().invoke(app, ["train", *([kind] if kind else []), "--dataset", str(demo_folder("humanact12")),
+                                   "--out", str(out), *args])
+    assert res.exit_code == 2
+    assert message in res.stderr and res.stderr.count("\n") == 1 and "Traceback" not in res.output
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_plain_train_is_odmo(tmp_path):
     res = CliRunner().invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--representation", "lie",
                                    "--out", str(tmp_path / "m.pt")])

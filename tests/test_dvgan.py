@@ -24,12 +24,7 @@ TINY = {"hidden": 16, "lm_hidden": 8, "word_dim": 8, "rnn_latent": 8, "length": 
 ACTIONS = ("warm_up", "walk", "lift_dumbbell")
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")
@@ -281,21 +276,6 @@ def test_cli_train_sample_and_complete(tmp_path, make_motion_folder):
                               "--out", str(tmp_path / "bad.npz")])
     assert res.exit_code == 2 and "the prefix has 22 joints" in res.stderr and res.stderr.count("\n") == 1
     assert not (tmp_path / "bad.npz").exists()
-
-
-@pytest.mark.parametrize("kind, args, message", [
-    ("dvgan", ["--generator", "transformer"], "unknown DVGAN generator 'transformer'; valid: cnn, rnn"),
-    ("dvgan", ["--epochs", "0"], "epochs, batch size and n_critic must be positive"),
-    ("dvgan", ["--resume", "missing.pt"], "checkpoint not found"),
-    ("odmo", ["--generator", "rnn"], "--generator does not apply to `odmo train odmo`"),
-    ("dvgan", ["--n-critic", "0"], "epochs, batch size and n_critic must be positive"),
-    ("a2m", ["--n-critic", "5"], "--n-critic does not apply to `odmo train a2m`"),
-])
-def test_cli_train_dvgan_bad_input(tmp_path, kind, args, message):
-    out = tmp_path / "m.pt"
-    res = CliRunner().invoke(app, ["train", kind, "--dataset", str(demo_folder("humanact12")), "--out", str(out), *args])
-    assert res.exit_code == 2 and message in res.stderr and res.stderr.count("\n") == 1
-    assert not out.exists()
 
 
 def test_cli_complete_refuses_a_cnn_model(trained, tmp_path):

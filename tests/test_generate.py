@@ -298,3 +298,25 @@ def test_up_y_turns_a_minus_y_dataset_and_reads_back(noise_checkpoint, tmp_path)
     with pytest.raises(UserError, match="unknown --up 'z'"):
         batch.save(tmp_path / "bad.npz", up="z")
     assert not (tmp_path / "bad.npz").exists()
+
+
+def test_interpolation_without_ends_blends_the_first_two_modes_or_two_codes(lines_model, tmp_path):
+    loaded = load_odmo(lines_model)
+    for a, name in enumerate(loaded.actions):
+        k = len(loaded.action_modes(a).means)
+        batch = interpolate(loaded, name, steps=4)
+        assert f"{name} has {k} mode" in batch.note
+        if k >= 2:  # the first two modes' means
+            means = loaded.action_modes(a).means
+            assert np.allclose(batch.codes[0], means[0]) and np.allclose(batch.codes[-1], means[1])
+        else:  # the action's first and last latent-bank codes
+            own = np.flatnonzero(loaded.bank["labels"].numpy() == a)
+            bank = loaded.bank["codes"].numpy()
+            assert np.allclose(batch.codes[0], bank[own[0]]) and np.allclose(batch.codes[-1], bank[own[-1]])
+    res = CliRunner().invoke(app, ["interpolate", "--model", str(lines_model), "--action", "glide", "--steps", "3",
+                                   "--out", str(tmp_path / "b.npz")])
+    assert res.exit_code == 0, res.output
+    assert "glide has" in res.stdout
+    res = CliRunner().invoke(app, ["interpolate", "--model", str(lines_model), "--action", "glide", "--from-mode", "0",
+                                   "--out", str(tmp_path / "c.npz")])
+    assert res.exit_code == 2 and "or none of them" in res.stderr

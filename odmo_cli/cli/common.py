@@ -31,8 +31,8 @@ def _usage_line(exc: ClickUsageError) -> str:
     ctx = exc.ctx
     if isinstance(exc, NoSuchOption) and ctx is not None:
         options = sorted({o for p in ctx.command.params for o in p.opts if o.startswith("--")} - {"--help"})
-        message = (f"{exc.option_name} does not apply to `{ctx.command_path}`; "
-                   f"its options: {', '.join(options)}")
+        command = " ".join(["odmo", *ctx.command_path.split()[1:]])  # the program's name, whatever runs it
+        message = f"{exc.option_name} does not apply to `{command}`; its options: {', '.join(options)}"
     return message[:1].lower() + message[1:]
 
 

@@ -98,7 +98,7 @@ def train_odmo_cmd(
     with _epoch_bar(tc.epochs, as_json) as update, _interruptible(f"the last completed epoch is saved in {out}"):
         result = train_odmo(clips, tc, out, overrides, resume, _log_progress(update, tc.val_every), preset)
     if as_json:
-        return print_json({"out": str(result.out), "epochs": result.epochs, "report": result.report})
+        return _print_result(result)
     r = result.report
     console.print(f"wrote {result.out} after {result.epochs} epochs")
     console.print(f"held-out reconstruction ({r['held_out_clips']} clips, no teacher forcing): "
@@ -169,7 +169,7 @@ def train_a2m_cmd(
     with _epoch_bar(tc.epochs, as_json) as update, _interruptible(f"the last completed epoch is saved in {out}"):
         result = train_a2m(clips, tc, out, representation, resume, _log_progress(update, tc.val_every))
     if as_json:
-        return print_json({"out": str(result.out), "epochs": result.epochs, "report": result.report})
+        return _print_result(result)
     r = result.report
     console.print(f"wrote {result.out} (a2m-{r['representation']}) after {result.epochs} epochs; held-out "
                   f"({r['held_out_clips']} clips, teacher-forced): joint mse {r['held_out_mse']:.4g}, "
@@ -209,10 +209,14 @@ def train_dvgan_cmd(
     with _epoch_bar(tc.epochs, as_json) as update, _interruptible(f"the last completed epoch is saved in {out}"):
         result = train_dvgan(clips, tc, out, generator, resume=resume, progress=show(update))
     if as_json:
-        return print_json({"out": str(result.out), "epochs": result.epochs, "report": result.report})
+        return _print_result(result)
     r = result.report
     console.print(f"wrote {result.out}: DVGAN-{r['generator'].upper()} after {result.epochs} epochs "
                   f"({r['generator_steps']} generator steps)")
+
+
+def _print_result(result) -> None:
+    print_json({"out": str(result.out), "epochs": result.epochs, "report": result.report})
 
 
 @contextmanager

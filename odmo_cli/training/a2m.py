@@ -17,7 +17,7 @@ from odmo_cli.errors import UserError
 from odmo_cli.geometry.lie import bone_lengths_from_pose
 from odmo_cli.models.a2m import A2M, A2MConfig, a2m_terms, paper_lambda_kl
 from odmo_cli.parallel import thread_count
-from odmo_cli.training.loop import LoopConfig, Progress, Trainer, TrainResult
+from odmo_cli.training.loop import LoopConfig, Progress, Trainer, TrainResult, dataset_shapes
 
 
 @dataclass
@@ -41,10 +41,7 @@ class A2MTrainConfig(LoopConfig):
 
 
 def a2m_config_for(clips: ClipSet, representation: str = "lie", overrides: dict | None = None) -> A2MConfig:
-    m = clips.manifest
-    base = dict(n_joints=m.skeleton.n_joints, n_classes=len(m.actions), length=m.clip_length,
-                skeleton=m.skeleton_name, representation=representation)
-    return A2MConfig.from_dict({**base, **(overrides or {})})
+    return A2MConfig.from_dict({**dataset_shapes(clips), "representation": representation, **(overrides or {})})
 
 
 def bone_bank(clips: ClipSet, idx: np.ndarray, k: int, seed: int) -> torch.Tensor:

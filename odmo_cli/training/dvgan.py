@@ -19,7 +19,7 @@ from odmo_cli.data.readers import ClipSet
 from odmo_cli.errors import UserError
 from odmo_cli.models.dvgan import DVGAN, DVGANConfig, gradient_penalty, temporal_shift
 from odmo_cli.parallel import thread_count
-from odmo_cli.training.loop import LoopConfig, Progress, Trainer, TrainResult
+from odmo_cli.training.loop import LoopConfig, Progress, Trainer, TrainResult, dataset_shapes
 
 
 @dataclass
@@ -46,11 +46,7 @@ class DVGANTrainConfig(LoopConfig):
 
 
 def model_config_for(clips: ClipSet, generator: str = "cnn", overrides: dict | None = None) -> DVGANConfig:
-    m = clips.manifest
-    base = dict(n_joints=m.skeleton.n_joints, length=m.clip_length, actions=list(m.action_names),
-                generator=generator)
-    base.update(overrides or {})
-    return DVGANConfig.from_dict(base)
+    return DVGANConfig.from_dict({**dataset_shapes(clips), "generator": generator, **(overrides or {})})
 
 
 class DVGANTrainer(Trainer):

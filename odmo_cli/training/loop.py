@@ -72,6 +72,14 @@ class LoopConfig(Config):
         return cosine_rate(self.lr, self.lr_final or self.lr, epoch, self.epochs)
 
 
+def dataset_shapes(clips: ClipSet) -> dict:
+    """What a model config takes from the dataset (each config's from_dict keeps the fields it has):
+    joints, classes, clip length T, skeleton name, action names and the up axis's index."""
+    m = clips.manifest
+    return dict(n_joints=m.skeleton.n_joints, n_classes=len(m.actions), length=m.clip_length,
+                skeleton=m.skeleton_name, actions=list(m.action_names), up_axis=m.skeleton.up_index)
+
+
 def cosine_rate(lr: float, lr_final: float, epoch: int, epochs: int) -> float:
     """Cosine decay from lr (epoch 0) to lr_final (the last of `epochs`)."""
     frac = epoch / max(epochs - 1, 1)
@@ -188,6 +196,8 @@ class Trainer:
         ckpt = load_checkpoint(path)
         if ckpt.get("kind") != cls.kind:
             raise UserError(f"cannot resume: {path} holds a {ckpt.get('kind')!r} model, not {cls.kind}")
+        if "rng" not in ckpt or "epoch" not in ckpt:
+            raise UserError(f"cannot resume: {path} has no training state (a compact, shipped file?)")
         saved = type(tc).from_dict(ckpt["train_config"])
         tc = replace(saved, epochs=max(tc.epochs, saved.epochs), threads=tc.threads or saved.threads)
         trainer = cls(clips, cls.config_class.from_dict(ckpt["config"]), tc, out)

@@ -22,7 +22,7 @@ from odmo_cli.latent import ActionModes, assign, fit_modes, latent_bank, separat
 from odmo_cli.models.losses import odmo_terms, total_loss
 from odmo_cli.models.odmo import ODMO, ODMOConfig, preset_values
 from odmo_cli.parallel import thread_count
-from odmo_cli.training.loop import LoopConfig, Progress, Trainer, TrainResult
+from odmo_cli.training.loop import LoopConfig, Progress, Trainer, TrainResult, dataset_shapes
 
 
 @dataclass
@@ -61,11 +61,8 @@ class TrainConfig(LoopConfig):
 def model_config_for(clips: ClipSet, overrides: dict | None = None, preset: str = "odmo") -> ODMOConfig:
     """ODMOConfig for the clips' dataset: its shapes, the preset's loss scales (models.odmo.PRESETS),
     then `overrides`."""
-    m = clips.manifest
-    base = dict(n_joints=m.skeleton.n_joints, n_classes=len(m.actions), length=m.clip_length,
-                up_axis=m.skeleton.up_index, **preset_values(preset, m.name))
-    base.update(overrides or {})
-    return ODMOConfig.from_dict(base)
+    return ODMOConfig.from_dict({**dataset_shapes(clips), **preset_values(preset, clips.manifest.name),
+                                 **(overrides or {})})
 
 
 class ODMOTrainer(Trainer):
