@@ -48,10 +48,10 @@ def test_every_option_has_help_and_one_meaning(path, cmd):
         assert not options["--out"].is_flag, path
 
 
-def test_json_shows_as_a_switch_in_help():
-    res = CliRunner(env={"COLUMNS": "200"}).invoke(app, ["info", "-h"])
-    line = next(l for l in res.stdout.splitlines() if "--json" in l)
-    assert "BOOL" not in line.upper().replace("--JSON", "")
+@pytest.mark.parametrize("path", [p for p, _ in ALL], ids=[" ".join(p) for p, _ in ALL])
+def test_switches_show_as_switches_in_help(path):
+    res = CliRunner(env={"COLUMNS": "200"}).invoke(app, [*path, "-h"])
+    assert res.exit_code == 0 and "<bool>" not in res.stdout.lower()
 
 
 INAPPLICABLE = {  # one option of another model for each kind

@@ -91,17 +91,17 @@ def _version(value: bool) -> None:
 
 @app.callback()
 def _main(version: Annotated[bool, typer.Option("--version", help="Print the version and exit.",
-                                                callback=_version, is_eager=True)] = False) -> None:
+                                                callback=_version, is_eager=True, metavar="")] = False) -> None:
     """Action-conditioned on-demand 3D human motion generation (ODMO and baselines). Guides: docs/."""
 
 
 DataOpt = Annotated[Optional[Path], typer.Option(
     "--data", help="Data root (else $ODMO_DATA_DIR, else ~/.local/share/odmo).")]
-JsonOpt = Annotated[bool, typer.Option("--json", help="Print machine-readable JSON on stdout instead of tables.")]
-WideOpt = Annotated[bool, typer.Option("--wide", help="Show every column (the default fits 80 columns).")]
+JsonOpt = Annotated[bool, typer.Option("--json", help="Print machine-readable JSON on stdout instead of tables.", metavar="")]
+WideOpt = Annotated[bool, typer.Option("--wide", help="Show every column (the default fits 80 columns).", metavar="")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Seed for every random choice.")]
 DatasetArg = Annotated[str, typer.Argument(help="Dataset name (see `odmo data list`) or a folder.")]
-DemoOpt = Annotated[bool, typer.Option("--demo", help="Use the tiny demo subset shipped in the package.")]
+DemoOpt = Annotated[bool, typer.Option("--demo", help="Use the tiny demo subset shipped in the package.", metavar="")]
 ModelOpt = Annotated[Optional[str], typer.Option(
     "--model", help="Checkpoint path, or a shipped model: humanact12 (default), cmu.")]
 OutOpt = Annotated[Path, typer.Option("--out", help="Samples file to write (.npz).")]

@@ -46,7 +46,7 @@ def data_list(data: DataOpt = None, as_json: JsonOpt = False, wide: WideOpt = Fa
 
 @data_app.command("info")
 def data_info(dataset: DatasetArg, data: DataOpt = None, demo: DemoOpt = False,
-              verify: Annotated[bool, typer.Option(help="Check files against the manifest's SHA-256.")] = True,
+              verify: Annotated[bool, typer.Option(help="Check files against the manifest's SHA-256.", metavar="")] = True,
               as_json: JsonOpt = False):
     """Actions x clips x lengths; flags missing, extra or corrupt files against the manifest."""
     from odmo_cli.data.prepare import summarize

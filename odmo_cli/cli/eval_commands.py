@@ -28,9 +28,9 @@ def evaluate(
     per_action: Annotated[int, typer.Option("--per-action", help="Samples per action (0: the paper's).")] = 0,
     sampling: Annotated[str, typer.Option("--sampling", help="How ODMO draws codes: mode-preserving or conventional (one Gaussian per action).")] = "mode-preserving",
     samples: Annotated[Optional[list[Path]], typer.Option("--samples", help="Also score a samples .npz made elsewhere (repeatable; its dataset is the file's unless --dataset).")] = None,
-    customization: Annotated[bool, typer.Option("--customization", help="Also the end-point protocol (§4.4).")] = False,
-    held_out: Annotated[bool, typer.Option("--held-out", help="Also a row for the real clips the classifier never trained on (odmo classifiers).")] = False,
-    by_action: Annotated[bool, typer.Option("--by-action", help="Also print each row's accuracy, speed and amplitude ratios per action.")] = False,
+    customization: Annotated[bool, typer.Option("--customization", help="Also the end-point protocol (§4.4).", metavar="")] = False,
+    held_out: Annotated[bool, typer.Option("--held-out", help="Also a row for the real clips the classifier never trained on (odmo classifiers).", metavar="")] = False,
+    by_action: Annotated[bool, typer.Option("--by-action", help="Also print each row's accuracy, speed and amplitude ratios per action.", metavar="")] = False,
     out: Annotated[Optional[Path], typer.Option("--out", help="Also write the full report (every repeat) as JSON here.")] = None,
     data: DataOpt = None, seed: SeedOpt = 0, as_json: JsonOpt = False, wide: WideOpt = False,
 ):

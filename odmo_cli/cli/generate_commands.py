@@ -59,9 +59,9 @@ def _summary(batch, out: Path, as_json: bool, extra: dict | None = None) -> None
 
 
 UnitsOpt = Annotated[str, typer.Option("--units", help="BVH units: cm (most tools and rigs) or m.")]
-FloorOpt = Annotated[bool, typer.Option("--floor/--no-floor", help="BVH: lift the motion so its lowest foot touches y = 0.")]
+FloorOpt = Annotated[bool, typer.Option("--floor/--no-floor", help="BVH: lift the motion so its lowest foot touches y = 0.", metavar="")]
 HelpersOpt = Annotated[bool, typer.Option("--helper-joints", help="BVH: a zero-length joint per child of the pelvis and chest "
-                                                                  "(one bone per child; exact however the torso bends).")]
+                                                                  "(one bone per child; exact however the torso bends).", metavar="")]
 
 
 @app.command("sample")
@@ -149,7 +149,7 @@ def render_cmd(
     out: Annotated[Path, typer.Option("--out", help="Animation to write: .gif or .mp4 (.png: one still).")],
     index: Annotated[Optional[int], typer.Option("--index", help="Render only this motion (default 0).")] = None,
     grid: Annotated[Optional[str], typer.Option("--grid", help="ROWSxCOLS of the first motions, e.g. 4x5.")] = None,
-    trail: Annotated[bool, typer.Option("--trail", help="Draw the paths of the root, hands and feet so far.")] = False,
+    trail: Annotated[bool, typer.Option("--trail", help="Draw the paths of the root, hands and feet so far.", metavar="")] = False,
     size: Annotated[Optional[str], typer.Option("--size", help="Output size WIDTHxHEIGHT in pixels, e.g. 640x480.")] = None,
     frame: Annotated[Optional[int], typer.Option("--frame", help="For a .png still: the frame to draw (default: the middle one).")] = None,
     compare: Annotated[Optional[str], typer.Option("--compare", help="real: real clips of the same actions under the generated ones (needs the data).")] = None,
@@ -214,7 +214,7 @@ def interpolate_cmd(
 @app.command("modes")
 def modes_cmd(
     model: ModelOpt = None,
-    refit: Annotated[bool, typer.Option("--refit", help="Refit the mixtures and save them into the checkpoint.")] = False,
+    refit: Annotated[bool, typer.Option("--refit", help="Refit the mixtures and save them into the checkpoint.", metavar="")] = False,
     plot: Annotated[Optional[Path], typer.Option("--plot", help="Write a 2-D plot of the codes (.png).")] = None,
     projection: Annotated[str, typer.Option("--projection", help="The plot's 2-D projection: pca or tsne.")] = "pca",
     colour: Annotated[str, typer.Option("--colour", help="Colour the plot's points by action or by mode.")] = "action",

@@ -271,7 +271,7 @@ def _log_progress(update, val_every: int):
 def ship_cmd(
     dataset: Annotated[str, typer.Argument(help="humanact12 or cmu_mocap (cmu).")],
     out: Annotated[Path, typer.Option("--out", help="Folder for the files (odmo_<name>.pt, classifier_<name>.pt).")],
-    skip_classifier: Annotated[bool, typer.Option("--skip-classifier", help="Train ODMO only.")] = False,
+    skip_classifier: Annotated[bool, typer.Option("--skip-classifier", help="Train ODMO only.", metavar="")] = False,
     data: DataOpt = None, seed: SeedOpt = 0, as_json: JsonOpt = False,
 ):
     """Rebuild the shipped models of a dataset from scratch with its recipe: the evaluation classifier

@@ -55,6 +55,7 @@ def bone_bank(clips: ClipSet, idx: np.ndarray, k: int, seed: int) -> torch.Tenso
 class A2MTrainer(Trainer):
     kind = "a2m"
     config_class = A2MConfig
+    model_class = A2M
     min_train_clips = 1
 
     def __init__(self, clips: ClipSet, cfg: A2MConfig, tc: A2MTrainConfig, out: Path):
@@ -62,9 +63,6 @@ class A2MTrainer(Trainer):
             tc = replace(tc, lambda_kl=paper_lambda_kl(clips.manifest.name))
         self.lambda_kl = tc.lambda_kl
         super().__init__(clips, cfg, tc, out)
-
-    def build_model(self) -> A2M:
-        return A2M(self.cfg)
 
     def build_optimizers(self) -> dict:
         return {"optimizer": torch.optim.Adam(self.model.parameters(), lr=self.tc.lr,

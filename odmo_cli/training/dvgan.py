@@ -52,9 +52,7 @@ def model_config_for(clips: ClipSet, generator: str = "cnn", overrides: dict | N
 class DVGANTrainer(Trainer):
     kind = "dvgan"
     config_class = DVGANConfig
-
-    def build_model(self) -> DVGAN:
-        return DVGAN(self.cfg)
+    model_class = DVGAN
 
     def build_optimizers(self) -> dict:
         tc = self.tc

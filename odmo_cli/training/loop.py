@@ -2,7 +2,7 @@
 schedule, exact resume, atomic checkpoints, a clean stop on Ctrl-C and on a non-finite loss.
 
 A model's trainer subclasses `Trainer` and fills in four things:
-    build_model()      the network (called right after seeding, so its initialisation is seeded)
+    model_class        the network, built as model_class(cfg) right after seeding (or build_model())
     build_optimizers() {checkpoint key: optimizer}
     train_epoch()      one pass over the data -> {term: mean value}; call self.check_finite(loss)
     validate()         held-out figures -> {name: value} (optional; logged as val_<name>)
@@ -105,6 +105,7 @@ class Trainer:
 
     kind = ""  # the checkpoint's model kind
     config_class = Config  # the model config's class (to rebuild it from a checkpoint)
+    model_class: type[torch.nn.Module] | None = None  # built as model_class(cfg) unless build_model says otherwise
     min_train_clips = 2
 
     def __init__(self, clips: ClipSet, cfg, tc: LoopConfig, out: str | Path):
@@ -126,7 +127,7 @@ class Trainer:
 
     # -- what a model fills in -------------------------------------------------------------------
     def build_model(self) -> torch.nn.Module:
-        raise NotImplementedError
+        return self.model_class(self.cfg)
 
     def build_optimizers(self) -> dict[str, torch.optim.Optimizer]:
         raise NotImplementedError

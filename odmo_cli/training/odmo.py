@@ -68,9 +68,7 @@ def model_config_for(clips: ClipSet, overrides: dict | None = None, preset: str 
 class ODMOTrainer(Trainer):
     kind = "odmo"
     config_class = ODMOConfig
-
-    def build_model(self) -> ODMO:
-        return ODMO(self.cfg)
+    model_class = ODMO
 
     def build_optimizers(self) -> dict:
         return {"optimizer": torch.optim.Adam(self.model.parameters(), lr=self.tc.lr)}
