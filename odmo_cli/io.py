@@ -1,4 +1,7 @@
-"""Safe file writing: everything goes to a temp file in the target folder, then is renamed."""
+"""Safe file writing: everything goes to a temp file in the target folder, then is renamed.
+
+The formats built on it: samples files (odmo_cli.formats.samples), checkpoints (odmo_cli.checkpoint).
+"""
 
 from __future__ import annotations
 
@@ -11,7 +14,6 @@ from pathlib import Path
 from typing import Iterable, Iterator
 
 import numpy as np
-import torch
 
 from odmo_cli.errors import UserError
 
@@ -86,90 +88,3 @@ def _write_streamed(f, value: StreamedArray) -> None:
         rows += len(block)
     if rows != value.shape[0]:
         raise ValueError(f"streamed {rows} rows, the header says {value.shape[0]}")
-
-
-def read_samples(path: str | Path, keys: tuple[str, ...] = ("motions", "actions"), rows: slice = slice(None),
-                 optional: tuple[str, ...] = ()) -> dict:
-    """A samples file's arrays (docs/formats.md) with motions and end points in the dataset's own
-    frame (a file written with `--up y` is turned back), plus "skeleton" and "fps".
-
-    rows: only these motions (the file is read lazily); `optional` keys are None when absent.
-    UserError when the file is missing or unreadable or lacks one of `keys`.
-    """
-    from odmo_cli.skeletons import get_skeleton
-
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"samples file not found: {path}")
-    try:
-        with np.load(path, allow_pickle=False) as f:
-            missing = [k for k in keys if k not in f]
-            if missing:
-                raise UserError(f"{path} is not an odmo samples file (no {missing[0]})")
-            out = {k: (f[k][rows] if k in ROW_KEYS else f[k]) if k in f else None for k in keys + optional}
-            out["skeleton"], out["fps"] = str(f["skeleton"]), float(f["fps"])
-            up = str(f["up_axis"]) if "up_axis" in f else None
-            out["n"] = len(f["motions"]) if "motions" in f else 0
-    except KeyError as exc:
-        raise UserError(f"{path} is not an odmo samples file (no {exc.args[0]})") from None
-    except (ValueError, OSError, zipfile.BadZipFile) as exc:
-        raise UserError(f"cannot read {path}: {exc}") from None
-    try:
-        sk = get_skeleton(out["skeleton"])
-    except UserError as exc:
-        raise UserError(f"{path}: {exc}") from None
-    if up is not None and up != sk.up_axis:
-        if up != "+y":
-            raise UserError(f"{path}: up axis {up!r} is neither the skeleton's ({sk.up_axis}) nor +y")
-        back = sk.y_up_rotation()  # the inverse of a proper rotation is its transpose: x @ R
-        for k in ("motions", "end_points"):
-            if out.get(k) is not None:
-                out[k] = (out[k] @ back).astype(out[k].dtype)
-    return out
-
-
-ROW_KEYS = ("motions", "actions", "modes", "codes", "end_points", "end_mask")
-
-
-def save_checkpoint(path: str | Path, payload: dict) -> None:
-    """Write a checkpoint atomically. The payload must hold only tensors and plain values."""
-    with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
-
-
-def load_checkpoint(path: str | Path) -> dict:
-    """Load a checkpoint without unpickling classes (safe for untrusted files)."""
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"checkpoint not found: {path}")
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises several types for bad or unsafe files
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise UserError(f"cannot load checkpoint {path}: {first}") from None
-    if not isinstance(payload, dict):
-        raise UserError(f"cannot load checkpoint {path}: not an odmo checkpoint (no dict inside)")
-    return payload
-
-
-def describe_checkpoint(path: str | Path) -> dict:
-    """The plain-value parts of a checkpoint: what `odmo info` prints."""
-    ckpt = load_checkpoint(path)
-    if "kind" not in ckpt or "config" not in ckpt:
-        raise UserError(f"{path} is not an odmo checkpoint (no model kind or config inside)")
-    state = ckpt.get("state_dict", {})
-    # buffers such as A2M's bone-length bank are data, not parameters
-    n_params = sum(t.numel() for k, t in state.items() if k != "bone_bank")
-    bank = ckpt.get("latent_bank")
-    last = ckpt.get("history", [])[-1:] or [{}]
-    banks = {"latent_bank": f"{len(bank['codes'])} codes" if bank else "none (training not finished)"}
-    if ckpt["kind"] == "a2m":
-        banks = {"bone_bank": f"{len(state['bone_bank'])} real bone-length sets for sampling"}
-    return {
-        "file": str(path), "format_version": ckpt.get("format_version"), "kind": ckpt["kind"],
-        "parameters": n_params, "weights": ckpt.get("weights_dtype", "float32"),
-        "epoch": ckpt.get("epoch"), "dataset": ckpt.get("dataset", {}),
-        "config": ckpt["config"], "train_config": ckpt.get("train_config", {}), **banks,
-        "last_epoch_losses": {k: round(v, 5) if isinstance(v, float) else v for k, v in last[0].items()},
-        "report": ckpt.get("report", {}),
-    }

@@ -204,7 +204,7 @@ def assign(modes: ActionModes, codes: np.ndarray) -> np.ndarray:
 def mode_report(bank: dict, modes: dict, actions: list[str]) -> list[dict]:
     """Per action: modes found, member counts, silhouettes and, where the bank has ground-truth
     modes, the adjusted Rand index between discovered and true modes."""
-    from sklearn.metrics import adjusted_rand_score
+    from odmo_cli.metrics import adjusted_rand
 
     codes, labels, truth = bank["codes"].numpy(), bank["labels"].numpy(), bank["modes"].numpy()
     rows = []
@@ -217,6 +217,6 @@ def mode_report(bank: dict, modes: dict, actions: list[str]) -> list[dict]:
         t = truth[own]
         if own.any() and (t >= 0).all():
             row["true_modes"] = int(len(np.unique(t)))
-            row["ari"] = float(adjusted_rand_score(t, assign(m, codes[own].astype(np.float64))))
+            row["ari"] = adjusted_rand(t, assign(m, codes[own].astype(np.float64)))
         rows.append(row)
     return rows

@@ -22,7 +22,6 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import linalg
 from scipy.spatial.distance import pdist
 from scipy.special import rel_entr
-from sklearn.metrics import adjusted_rand_score
 
 # pytorch-fid's tolerance on the imaginary part of sqrtm(S1 S2)'s diagonal.
 _IMAG_ATOL = 1e-3
@@ -233,11 +232,39 @@ def apd(motions: ArrayLike) -> float:
     return float(pdist(m.reshape(m.shape[0], -1)).mean())
 
 
+def class_apd(motions: ArrayLike, labels: ArrayLike, cap: int | None = None) -> dict[int, float]:
+    """{category: APD of its motions} for every category of `labels` with at least 2 motions
+    (the first `cap` of each, when given). motions (N, T, J, 3), labels (N,)."""
+    m = _as_motions(motions)
+    y = _as_labels(labels, m.shape[0])
+    out = {}
+    for c in np.unique(y).tolist():
+        own = m[y == c][:cap]
+        if own.shape[0] >= 2:
+            out[c] = apd(own)
+    return out
+
+
+def apd_ratio(gen_apd: dict[int, float], real_apd: dict[int, float]) -> float:
+    """n-APD from per-category APDs (class_apd): the mean over gen_apd's categories of generated
+    over real APD. ValueError if a category has no real APD or a real APD of 0."""
+    ratios = []
+    for c in sorted(gen_apd):
+        real = real_apd.get(c, 0.0)
+        if real == 0.0:
+            raise ValueError(f"category {c}: real motions need >= 2 distinct sequences")
+        ratios.append(gen_apd[c] / real)
+    if not ratios:
+        raise ValueError("n-APD needs a category with at least 2 generated motions")
+    return float(np.mean(ratios))
+
+
 def n_apd(
     gen_motions: ArrayLike,
     gen_labels: ArrayLike,
     real_motions: ArrayLike,
     real_labels: ArrayLike,
+    cap: int | None = None,
 ) -> float:
     """Normalised APD of a model (ODMO §4.2.2).
 
@@ -245,24 +272,20 @@ def n_apd(
 
     The APD of the generated motions of each category, divided by the APD of that category's
     real motions (APD varies a lot between actions), averaged over the categories present in
-    `gen_labels`. gen_motions (N, T, J, 3) with gen_labels (N,); real_motions (M, T', J, 3)
-    with real_labels (M,). ValueError if a category has fewer than 2 motions on either side,
-    or its real motions are all identical.
+    `gen_labels`; with `cap`, each category's first `cap` motions on either side. gen_motions
+    (N, T, J, 3) with gen_labels (N,); real_motions (M, T', J, 3) with real_labels (M,).
+    ValueError if a category has fewer than 2 motions on either side, or its real motions are
+    all identical. (The protocol computes the real side once: apd_ratio(class_apd(...), real).)
     """
     gm = _as_motions(gen_motions, "gen_motions")
     gy = _as_labels(gen_labels, gm.shape[0], "gen_labels")
-    rm = _as_motions(real_motions, "real_motions")
-    ry = _as_labels(real_labels, rm.shape[0], "real_labels")
     if gm.shape[0] == 0:
         raise ValueError("n_apd needs generated motions")
-
-    ratios = []
-    for c in np.unique(gy):
-        real_apd = apd(rm[ry == c]) if np.count_nonzero(ry == c) >= 2 else 0.0
-        if real_apd == 0.0:
-            raise ValueError(f"category {c}: real motions need >= 2 distinct sequences")
-        ratios.append(apd(gm[gy == c]) / real_apd)
-    return float(np.mean(ratios))
+    gen = class_apd(gm, gy, cap)
+    few = sorted(set(np.unique(gy).tolist()) - set(gen))
+    if few:
+        raise ValueError(f"category {few[0]}: n-APD needs at least 2 generated motions")
+    return apd_ratio(gen, class_apd(real_motions, real_labels, cap))
 
 
 def mode_apd(motions: ArrayLike, modes: ArrayLike) -> float:
@@ -375,6 +398,8 @@ def inception_score(probs: ArrayLike) -> float:
 
 def adjusted_rand(labels_true: ArrayLike, labels_pred: ArrayLike) -> float:
     """Adjusted Rand index between two clusterings (N,) (sklearn.metrics.adjusted_rand_score)."""
+    from sklearn.metrics import adjusted_rand_score
+
     return float(adjusted_rand_score(np.asarray(labels_true), np.asarray(labels_pred)))
 
 
@@ -399,16 +424,28 @@ def _body(motions: ArrayLike, smooth: int) -> NDArray[np.float64]:
 def body_speed(motions: ArrayLike, smooth: int = 3) -> NDArray[np.float64]:
     """Mean body-relative joint speed of each motion (N,), in units per frame: the norm of the
     frame-to-frame change of every joint about the root, averaged over joints and frames."""
-    body = _body(motions, smooth)
-    if body.shape[1] < 2:
-        raise ValueError("body_speed needs at least 2 frames after smoothing")
-    return np.linalg.norm(np.diff(body, axis=1), axis=-1).mean(axis=(1, 2))
+    return _speed(_body(motions, smooth))
 
 
 def body_amplitude(motions: ArrayLike, smooth: int = 3) -> NDArray[np.float64]:
     """Mean amplitude of each motion (N,): the standard deviation over time of every joint's
     position about the root (root-mean-square distance from its mean position), averaged over joints."""
+    return _amplitude(_body(motions, smooth))
+
+
+def body_speed_and_amplitude(motions: ArrayLike, smooth: int = 3) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(body_speed, body_amplitude) of each motion, smoothing the motions once for both."""
     body = _body(motions, smooth)
+    return _speed(body), _amplitude(body)
+
+
+def _speed(body: NDArray[np.float64]) -> NDArray[np.float64]:
+    if body.shape[1] < 2:
+        raise ValueError("body_speed needs at least 2 frames after smoothing")
+    return np.linalg.norm(np.diff(body, axis=1), axis=-1).mean(axis=(1, 2))
+
+
+def _amplitude(body: NDArray[np.float64]) -> NDArray[np.float64]:
     dev = body - body.mean(axis=1, keepdims=True)
     return np.sqrt((dev ** 2).sum(-1).mean(axis=1)).mean(axis=1)
 
@@ -426,8 +463,9 @@ def damping_ratios(gen_motions: ArrayLike, gen_labels: ArrayLike, real_motions: 
     gm, rm = _as_motions(gen_motions, "gen_motions"), _as_motions(real_motions, "real_motions")
     gy = _as_labels(gen_labels, gm.shape[0], "gen_labels")
     ry = _as_labels(real_labels, rm.shape[0], "real_labels")
-    speed = class_ratios(body_speed(gm, smooth), gy, body_speed(rm, smooth), ry)
-    amp = class_ratios(body_amplitude(gm, smooth), gy, body_amplitude(rm, smooth), ry)
+    (gen_speed, gen_amp), (real_speed, real_amp) = body_speed_and_amplitude(gm, smooth), body_speed_and_amplitude(rm, smooth)
+    speed = class_ratios(gen_speed, gy, real_speed, ry)
+    amp = class_ratios(gen_amp, gy, real_amp, ry)
     return {"speed": mean_finite(speed.values()), "amplitude": mean_finite(amp.values()),
             "speed_by_class": speed, "amplitude_by_class": amp}
 

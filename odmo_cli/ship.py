@@ -1,16 +1,16 @@
 """The models that ship in odmo_cli/assets/models: one recipe per dataset, rebuilt by one command.
 
 `odmo ship humanact12 --out DIR` trains the evaluation classifier and ODMO with the recipe below,
-fits the mode mixtures, and writes the compact files `sample`/`eval` load by short name. The
-same seed gives the same files on one host (across hosts, kernels may round differently). ODMO's
-training checkpoint is kept beside them while it runs, so an interrupted build continues where it
-stopped (resume is exact) instead of starting over.
+fits the mode mixtures, and writes the compact files `sample`/`eval` load by short name (their
+names: checkpoint.SHIPPED). The same seed gives the same files on one host (across hosts, kernels
+may round differently). Each training checkpoint is kept beside them while it runs, so an
+interrupted build continues where it stopped (resume is exact) instead of starting over.
 
 Compact means: no optimizer, RNG or split, the loss history cut to its last entry, and the weights
 stored as float16 (loaded back into float32 parameters). Most of ODMO's weights are the trajectory
 generator's expand layer, (C*D + 3) x T(C*D + 3): 3.5 M of HumanAct12's 4.6 M values in the authors'
 architecture. Matrices that large are stored as int8 with one float32 scale per row (symmetric,
-|w| / 127 steps); `float_state` restores float32. Measured on the shipped HumanAct12 model (full
+|w| / 127 steps); `checkpoint.float_state` restores float32. Measured on the shipped HumanAct12 model (full
 protocol, 10 x 250): int8 rows for the expand layer leave Acc and FID unchanged (90.06 / 0.592 against
 90.06 / 0.593), while int8 for every matrix costs 1 point of Acc and raises FID to 0.764 (the
 autoregressive decoder amplifies the rounding), so only the large ones are rounded.
@@ -18,30 +18,30 @@ autoregressive decoder amplifies the rounding), so only the large ones are round
 
 from __future__ import annotations
 
-from dataclasses import asdict
-from importlib import resources
 from pathlib import Path
 from typing import Callable
 
 import torch
 
+from odmo_cli.checkpoint import SHIPPED, load_checkpoint, save_checkpoint
+from odmo_cli.data.locate import resolve
 from odmo_cli.data.manifest import canonical_name
+from odmo_cli.data.readers import read_dataset
 from odmo_cli.errors import UserError
-from odmo_cli.io import load_checkpoint, save_checkpoint
+from odmo_cli.training.classifier import ClassifierTrainConfig, train_classifier
+from odmo_cli.training.odmo import TrainConfig, train_odmo
 
-# The CPU recipes (README "Shipped models"): cosine-decayed Adam from a higher rate than the paper's
+# The CPU recipes (docs/training.md): cosine-decayed Adam from a higher rate than the paper's
 # constant 1e-3, teacher forcing decayed over the first half; 2 threads. Classifier settings are
-# those of the measured classifier runs (README "Evaluating").
+# those of the measured classifier runs (docs/evaluation.md).
 RECIPES = {
     "humanact12": {
         "odmo": {"epochs": 1000, "lr": 3e-3, "lr_final": 1e-4, "tf_epochs": 500, "threads": 2},
         "classifier": {"epochs": 200, "speed": 1.0, "threads": 1},
-        "file": "odmo_humanact12.pt", "classifier_file": "classifier_humanact12.pt",
     },
     "cmu_mocap": {
         "odmo": {"epochs": 650, "lr": 3e-3, "lr_final": 1e-4, "tf_epochs": 325, "threads": 2},
         "classifier": {"epochs": 100, "speed": 1.0, "threads": 1},
-        "file": "odmo_cmu.pt", "classifier_file": "classifier_cmu.pt",
     },
 }
 _KEEP = ("format_version", "kind", "config", "train_config", "dataset", "epoch", "latent_bank", "modes", "report")
@@ -79,21 +79,6 @@ def int8_rows(w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return q, scale
 
 
-def float_state(ckpt: dict) -> dict:
-    """The checkpoint's state dict with int8 rows (compact files) turned back into float32 matrices."""
-    scales = ckpt.get("int8_scales") or {}
-    return {k: v.float() * scales[k].float() if k in scales else v for k, v in ckpt["state_dict"].items()}
-
-
-def shipped_file(dataset: str, key: str = "file") -> Path | None:
-    """The installed shipped file of a dataset (key "file": ODMO, "classifier_file"); None if absent."""
-    recipe = RECIPES.get(canonical_name(dataset))
-    if recipe is None:
-        return None
-    path = Path(str(resources.files("odmo_cli") / "assets" / "models" / recipe[key]))
-    return path if path.is_file() else None
-
-
 def recipe_name(dataset: str) -> str:
     name = canonical_name(dataset)
     if name not in RECIPES:
@@ -101,32 +86,36 @@ def recipe_name(dataset: str) -> str:
     return name
 
 
+def compact_classifier(ckpt: dict) -> dict:
+    """A finished classifier checkpoint without its optimizer and RNG state; weights stay float32
+    (evaluation numbers must not move) and the split stays (`odmo eval --held-out` reads it)."""
+    return {k: v for k, v in ckpt.items() if k not in ("optimizer", "rng")}
+
+
 def build(dataset: str, data, out_dir: Path, seed: int = 0, skip_classifier: bool = False,
           progress: Callable | None = None, say: Callable[[str], None] = print) -> dict:
     """Train and write the shipped files for `dataset` into out_dir; returns both training reports."""
-    from odmo_cli.data.locate import resolve
-    from odmo_cli.data.readers import read_dataset
-    from odmo_cli.models.classifier import ClassifierTrainConfig, train_classifier
-    from odmo_cli.train import TrainConfig, train_odmo
-
     name = recipe_name(dataset)
     manifest, root = resolve(name, data)
     out_dir = Path(out_dir)
     if not out_dir.is_dir():
         raise UserError(f"output folder {out_dir} does not exist")
-    recipe = RECIPES[name]
+    recipe, files = RECIPES[name], SHIPPED[name]
     clips = read_dataset(root, manifest)
     reports = {}
     if not skip_classifier:
         say(f"training the {manifest.name} classifier ({recipe['classifier']['epochs']} epochs)")
         tc = ClassifierTrainConfig.from_dict({**recipe["classifier"], "seed": seed})
-        reports["classifier"] = train_classifier(clips, tc, out_dir / recipe["classifier_file"])
-    work = out_dir / (Path(recipe["file"]).stem + ".training.pt")
+        work = out_dir / (Path(files["classifier"]).stem + ".training.pt")
+        reports["classifier"] = train_classifier(clips, tc, work, resume=work if work.is_file() else None)
+        save_checkpoint(out_dir / files["classifier"], compact_classifier(load_checkpoint(work)))
+        work.unlink()
+    work = out_dir / (Path(files["odmo"]).stem + ".training.pt")
     resume = work if work.is_file() else None
     tc = TrainConfig(**{**recipe["odmo"], "seed": seed})
     say(f"training ODMO on {manifest.name} ({tc.epochs} epochs{', resuming ' + str(work) if resume else ''})")
     result = train_odmo(clips, tc, work, resume=resume, progress=progress)
-    save_checkpoint(out_dir / recipe["file"], compact(load_checkpoint(work)))
+    save_checkpoint(out_dir / files["odmo"], compact(load_checkpoint(work)))
     work.unlink()
-    reports["odmo"] = {"epochs": result.epochs, **result.report, "train_config": asdict(tc)}
+    reports["odmo"] = {"epochs": result.epochs, **result.report, "train_config": tc.to_dict()}
     return reports

@@ -21,7 +21,7 @@ from matplotlib.animation import PillowWriter  # noqa: E402
 
 from odmo_cli.errors import UserError  # noqa: E402
 from odmo_cli.io import atomic_path  # noqa: E402
-from odmo_cli.skeletons import Skeleton  # noqa: E402
+from odmo_cli.geometry.skeletons import Skeleton  # noqa: E402
 
 
 def to_plot_frame(motions: np.ndarray, skeleton: Skeleton) -> np.ndarray:
@@ -149,8 +149,8 @@ def render_samples(samples: str | Path, out: str | Path, index: int | None = Non
     compare="real": under the generated motions, as many real clips of the same actions (random
     crops of the dataset's clip length, found with --data as everywhere else, drawn with `seed`).
     """
-    from odmo_cli.io import read_samples
-    from odmo_cli.skeletons import get_skeleton
+    from odmo_cli.formats.samples import read_samples
+    from odmo_cli.geometry.skeletons import get_skeleton
 
     if index is not None and grid is not None:
         raise UserError("give either --index or --grid, not both")

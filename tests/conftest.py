@@ -75,7 +75,7 @@ def synthetic_motion(skeleton_name: str, length: int, rng: np.random.Generator,
     root drifts on the ground plane and joints wobble a little. The first root is NOT at the
     origin (readers must not depend on that). `scale` multiplies everything (CMU raw = x20).
     """
-    from odmo_cli.skeletons import get_skeleton
+    from odmo_cli.geometry.skeletons import get_skeleton
 
     sk = get_skeleton(skeleton_name)
     up = np.zeros(3)
@@ -248,6 +248,17 @@ def cmu_fixture(tmp_path: Path) -> Path:
 # ============================ end of the datasets section ============================
 
 
+@pytest.fixture
+def one_thread():
+    """torch at one thread for the test, the previous count restored after."""
+    import torch
+
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
 # =====================================================================================
 # A tiny trained ODMO: straight-line motions of a rigid body (test_generate, test_evaluate).
 # =====================================================================================
@@ -297,19 +308,16 @@ def lines_folder(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def lines_model(tmp_path_factory, lines_folder):
-    import torch
-
     from odmo_cli.data.locate import resolve
     from odmo_cli.data.readers import read_dataset
-    from odmo_cli.train import TrainConfig, train_odmo
+    from odmo_cli.training.odmo import TrainConfig, train_odmo
 
-    torch.set_num_threads(1)
     manifest, root = resolve(lines_folder)
     clips = read_dataset(root, manifest)
     overrides = {"motion_hidden": 32, "traj_hidden": 32, "encoder_fc": 32, "latent_dim": 4}
     tc = TrainConfig(epochs=150, batch_size=40, val_fraction=0.0, val_every=0, checkpoint_every=0,
                      pairs_per_epoch=160, seed=0, lr=1e-2, lr_final=1e-3, tf_epochs=75,
-                     same_class_fraction=-1.0)
+                     same_class_fraction=-1.0, threads=1)  # one thread while training, torch's default after
     # independent pairs (not the release's half same-class): this is the recipe the end-point
     # tests were written for; with 0.5 the far end point of test_end_points_are_reached is missed
     # by 0.11 instead of < 0.1 (measured once, seed 0)

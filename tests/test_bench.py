@@ -4,23 +4,34 @@ from __future__ import annotations
 
 import json
 
+import pytest
 import torch
 from typer.testing import CliRunner
 
-from odmo_cli.bench import count_flops, matmul_rate
+from odmo_cli.evaluation.bench import count_flops, matmul_rate
 from odmo_cli.cli import app
 
 
 def test_bench_sampling_reports_median_min_max(tmp_path):
     out = tmp_path / "bench.json"
-    res = CliRunner().invoke(app, ["bench", "--only", "sampling", "--runs", "2", "--json", str(out)])
+    peer = tmp_path / "peer.py"  # stands in for ../shared/peer/bench_peer.py: one JSON line, as it prints
+    peer.write_text("import json, sys; a = sys.argv; "
+                    "print(json.dumps({'motions_per_s': 500.0, 'n': int(a[a.index('--n') + 1])}))\n")
+    res = CliRunner().invoke(app, ["bench", "--only", "sampling", "--runs", "2", "--peer", str(peer), "--out", str(out)])
     assert res.exit_code == 0, res.output
     report = json.loads(out.read_text())
     names = [f["name"] for f in report["figures"]]
-    assert names == ["model load", "sampling throughput (n = 996, T = 60)"]
+    assert names == ["model load", "sampling throughput (n = 996, T = 60)",
+                     "`odmo sample --action all --n 84` after load: codes, end points, networks, file",
+                     "the authors' networks alone, 1008 motions (bench_peer.py, same run)",
+                     "`odmo sample` over the authors' networks"]
+    figures = {f["name"]: f for f in report["figures"]}
     for f in report["figures"]:
         assert f["runs"] == 2 and f["min"] <= f["median"] <= f["max"] and f["min"] > 0
-        assert f["note"] in ("untrained network, HumanAct12 shapes", "")  # "" once a model ships
+    for name in names[:3]:
+        assert figures[name]["note"] == ""  # the shipped model, not an untrained stand-in
+    ours, theirs, ratio = (figures[n] for n in names[2:])
+    assert theirs["median"] == 500.0 and ratio["median"] == pytest.approx(ours["median"] / 500.0)
     assert report["machine"]["cores"] >= 1
 
 

@@ -7,14 +7,14 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from odmo_cli import lie
-from odmo_cli.bvh import (BvhOptions, bvh_positions, export_bvh, export_motions, motion_to_bvh, read_bvh,
+from odmo_cli.geometry import lie
+from odmo_cli.formats.bvh import (BvhOptions, bvh_positions, export_bvh, export_motions, motion_to_bvh, read_bvh,
                           write_bvh)
 from odmo_cli.cli import app
 from odmo_cli.data.bvh_import import BvhImportConfig, import_bvh_folder, resample
 from odmo_cli.data.readers import read_dataset
 from odmo_cli.errors import UserError
-from odmo_cli.skeletons import get_skeleton
+from odmo_cli.geometry.skeletons import get_skeleton
 
 # Two joints: the root moves along x; the child, 10 cm above it, is turned by the root's
 # Zrotation (channel order Z, X, Y as in the CMU release) and by its own.
@@ -464,7 +464,7 @@ def test_render_compare_real(run, tmp_path, humanact12_dir):
     assert res.exit_code == 0, res.output
     with Image.open(tmp_path / "c.png") as im:
         assert im.size == (400, 400)
-    from odmo_cli.skeletons import get_skeleton
+    from odmo_cli.geometry.skeletons import get_skeleton
     from odmo_cli.viz import real_examples
 
     real = real_examples(None, get_skeleton("humanact12"), ["walk", "jump"], 60, humanact12_dir, seed=0)

@@ -14,19 +14,16 @@ from odmo_cli.data.demo import demo_folder
 from odmo_cli.data.locate import resolve
 from odmo_cli.data.manifest import load_manifest
 from odmo_cli.data.readers import read_dataset
+from odmo_cli.checkpoint import FORMAT_VERSION, save_checkpoint
 from odmo_cli.errors import UserError
-from odmo_cli.io import save_checkpoint
-from odmo_cli.models import classifier as clf
-from odmo_cli.models.classifier import (ClassifierConfig, ClassifierTrainConfig, MotionClassifier,
-                                        check_matches, config_for, load_classifier, train_classifier)
+from odmo_cli.evaluation import classifier as clf
+from odmo_cli.evaluation.classifier import check_matches, load_classifier
+from odmo_cli.models.classifier import ClassifierConfig, MotionClassifier, config_for
+from odmo_cli.training import classifier as train_clf
+from odmo_cli.training.classifier import ClassifierTrainConfig, train_classifier
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")
@@ -219,7 +216,7 @@ def test_tiny_training_learns_and_writes_a_safe_checkpoint(demo_clips, tiny_run)
     assert report["epochs"] == 25 and len(logs) == 25 and report["seconds"] > 0
     assert logs[-1]["loss"] < logs[0]["loss"]
     ckpt = torch.load(out, map_location="cpu", weights_only=True)
-    assert ckpt["kind"] == "classifier" and ckpt["format_version"] == clf.FORMAT_VERSION
+    assert ckpt["kind"] == "classifier" and ckpt["format_version"] == FORMAT_VERSION
     assert ckpt["dataset"]["actions"] == list(demo_clips.manifest.action_names)
     assert ckpt["dataset"]["length"] == 60 and ckpt["dataset"]["skeleton"] == "humanact12"
     assert ckpt["config"] == {"input_size": 72, "n_classes": 12, "hidden": 32, "layers": 2, "feature": 30}
@@ -227,7 +224,7 @@ def test_tiny_training_learns_and_writes_a_safe_checkpoint(demo_clips, tiny_run)
     model = load_classifier(out, expect_classes=12, expect_input=72,
                             expect_actions=demo_clips.manifest.action_names)
     assert model.info["source"] == "odmo"
-    crops = clf.crop_batch(demo_clips, np.arange(len(demo_clips)), 60)
+    crops = train_clf.crop_batch(demo_clips, np.arange(len(demo_clips)), 60)
     acc = float((model.predict(crops)[0].argmax(1) == demo_clips.labels).mean())
     assert acc == pytest.approx(report["train_accuracy"])
     with pytest.raises(UserError, match="trained on actions"):
@@ -254,7 +251,6 @@ def test_training_with_validation_split_and_options(demo_clips, tmp_path, option
     report = train_classifier(demo_clips, tiny_tc(epochs=2, val_fraction=0.34, **options), tmp_path / "v.pt",
                               progress=logs.append)
     assert report["val_clips"] == 12 and report["train_clips"] == 24
-    assert 0.0 <= report["val_accuracy"] <= 1.0 and 0.0 <= report["val_accuracy_random_crop"] <= 1.0
     assert set(report["val_per_class"]) == set(demo_clips.manifest.action_names)
     assert all(np.isfinite(log["loss"]) for log in logs)
 
@@ -267,11 +263,11 @@ def test_learning_rate_schedule():
 
 def test_mirror_swaps_sides_and_negates_one_axis():
     names = load_manifest("humanact12").skeleton.joint_names
-    perm = clf.mirror_map(names)
+    perm = train_clf.mirror_map(names)
     assert names[perm[names.index("left_wrist")]] == "right_wrist" and perm[0] == 0
     assert [perm[j] for j in perm] == list(range(len(names)))  # an involution
     motions = np.random.default_rng(0).normal(size=(40, 3, 24, 3)).astype(np.float32)
-    out = clf.mirror_half(motions, perm, 0, np.random.default_rng(1))
+    out = train_clf.mirror_half(motions, perm, 0, np.random.default_rng(1))
     flipped = ~np.all(out == motions, axis=(1, 2, 3))
     assert 5 < flipped.sum() < 35
     expected = motions[flipped][:, :, perm] * np.array([-1, 1, 1], np.float32)
@@ -280,10 +276,10 @@ def test_mirror_swaps_sides_and_negates_one_axis():
 
 def test_resample_changes_playback_speed():
     motion = np.arange(10, dtype=np.float32)[:, None, None] * np.ones((1, 2, 3), np.float32)
-    np.testing.assert_array_equal(clf._resample(motion, 1.0), motion)
-    np.testing.assert_array_equal(clf._resample(motion, 2.0)[:, 0, 0], [0, 2, 4, 6, 8])
-    np.testing.assert_allclose(clf._resample(motion, 0.5)[:4, 0, 0], [0, 0.5, 1, 1.5])
-    assert len(clf._resample(motion, 0.5)) == 19
+    np.testing.assert_array_equal(train_clf._resample(motion, 1.0), motion)
+    np.testing.assert_array_equal(train_clf._resample(motion, 2.0)[:, 0, 0], [0, 2, 4, 6, 8])
+    np.testing.assert_allclose(train_clf._resample(motion, 0.5)[:4, 0, 0], [0, 0.5, 1, 1.5])
+    assert len(train_clf._resample(motion, 0.5)) == 19
 
 
 @pytest.mark.parametrize("kw, message", [
@@ -317,7 +313,7 @@ def test_real_datasets_fit_their_classifier_presets(data_dir):
         assert (cfg.input_size, cfg.n_classes) == (3 * joints, classes)
         assert clips.motions[0].shape[1:] == (joints, 3)
         model = MotionClassifier(cfg)
-        logits, feats = model.predict(clf.crop_batch(clips, np.arange(8), manifest.clip_length))
+        logits, feats = model.predict(train_clf.crop_batch(clips, np.arange(8), manifest.clip_length))
         assert logits.shape == (8, classes) and feats.shape == (8, 30)
 
 

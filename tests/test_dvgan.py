@@ -1,4 +1,5 @@
-"""DVGAN baseline: networks, WGAN-GP pieces, training, checkpoints, completion, CLI (issue 8)."""
+"""DVGAN baseline: networks, WGAN-GP pieces, training, checkpoints, completion, CLI (issue 8).
+Resume, Ctrl-C and the non-finite stop: test_training_loop.py, for every trainer."""
 
 from __future__ import annotations
 
@@ -7,24 +8,23 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from odmo_cli import generate
+from odmo_cli import checkpoint
 from odmo_cli.cli import app
 from odmo_cli.data.demo import demo_folder
 from odmo_cli.data.locate import resolve
 from odmo_cli.data.readers import read_dataset
-from odmo_cli.errors import TrainingError, UserError
-from odmo_cli.io import load_checkpoint
+from odmo_cli.checkpoint import load_checkpoint
+from odmo_cli.errors import UserError
+from odmo_cli.generation import generate
 from odmo_cli.models.dvgan import (DVGAN, DVGANConfig, LanguageModel, final_cut, gradient_penalty,
                                    model_from_checkpoint, temporal_shift)
-from odmo_cli.train_dvgan import DVGANTrainConfig, DVGANTrainer, model_config_for, train_dvgan
+from odmo_cli.training.dvgan import DVGANTrainConfig, train_dvgan
 
 TINY = {"hidden": 16, "lm_hidden": 8, "word_dim": 8, "rnn_latent": 8, "length": 16}
 ACTIONS = ("warm_up", "walk", "lift_dumbbell")
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    torch.set_num_threads(1)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +41,7 @@ def tiny_model(generator: str, **kw) -> DVGAN:
 
 
 def tiny_tc(**kw) -> DVGANTrainConfig:
-    base = dict(epochs=2, batch_size=12, n_critic=2, checkpoint_every=0, seed=0)
+    base = dict(epochs=2, batch_size=12, n_critic=2, checkpoint_every=0, seed=0, threads=1)
     base.update(kw)
     return DVGANTrainConfig(**base)
 
@@ -49,7 +49,6 @@ def tiny_tc(**kw) -> DVGANTrainConfig:
 @pytest.fixture(scope="module")
 def trained(demo_clips, tmp_path_factory):
     """Tiny DVGANs (cnn, rnn) trained 2 epochs on the demo clips: generator -> (checkpoint, result)."""
-    torch.set_num_threads(1)
     out = {}
     for g in ("cnn", "rnn"):
         path = tmp_path_factory.mktemp("dvgan") / f"{g}.pt"
@@ -202,8 +201,8 @@ def test_checkpoint_holds_plain_values_and_round_trips_through_the_sampler(train
     assert ckpt["dataset"]["actions"] == list(demo_clips.manifest.action_names)
     assert {"optimizer_g", "optimizer_d", "rng", "history", "format_version", "train_config"} <= set(ckpt)
     assert ckpt["train_config"]["n_critic"] == 2 and ckpt["train_config"]["gp_lambda"] == 10.0
-    loaded = generate.load_model(path)
-    assert isinstance(loaded, generate.LoadedBaseline) and loaded.kind == "dvgan"
+    loaded = checkpoint.load_model(path)
+    assert isinstance(loaded, checkpoint.LoadedBaseline) and loaded.kind == "dvgan"
     batch = generate.sample(loaded, ["walk", "jump"], 3, seed=5)
     assert batch.motions.shape == (6, 16, 24, 3) and list(batch.actions) == ["walk"] * 3 + ["jump"] * 3
     assert np.all(batch.motions[:, 0, 0] == 0) and np.isfinite(batch.motions).all()
@@ -214,53 +213,16 @@ def test_checkpoint_holds_plain_values_and_round_trips_through_the_sampler(train
 
 @pytest.mark.parametrize("generator", ["cnn", "rnn"])
 def test_same_seed_same_samples(trained, generator):
-    loaded = generate.load_model(trained[generator][0])
+    loaded = checkpoint.load_model(trained[generator][0])
     a = generate.sample(loaded, ["all"], 2, seed=1).motions
     assert np.array_equal(a, generate.sample(loaded, ["all"], 2, seed=1).motions)
     assert not np.allclose(a, generate.sample(loaded, ["all"], 2, seed=2).motions)
 
 
-def test_resume_continues_exactly(demo_clips, tmp_path, monkeypatch):
-    full = train_dvgan(demo_clips, tiny_tc(epochs=3), tmp_path / "full.pt", "cnn", TINY)
-    real = DVGANTrainer.train_epoch
-
-    def stop_at_two(self):
-        if self.epoch == 2:
-            raise KeyboardInterrupt
-        return real(self)
-
-    monkeypatch.setattr(DVGANTrainer, "train_epoch", stop_at_two)
-    with pytest.raises(KeyboardInterrupt):
-        train_dvgan(demo_clips, tiny_tc(epochs=3), tmp_path / "part.pt", "cnn", TINY)
-    assert load_checkpoint(tmp_path / "part.pt")["epoch"] == 2
-    monkeypatch.setattr(DVGANTrainer, "train_epoch", real)
-    train_dvgan(demo_clips, tiny_tc(epochs=3), tmp_path / "part.pt", resume=tmp_path / "part.pt")
-    a, b = load_checkpoint(full.out), load_checkpoint(tmp_path / "part.pt")
-    assert a["epoch"] == b["epoch"] == 3 and a["d_steps"] == b["d_steps"] == 9
-    for key in a["state_dict"]:
-        assert torch.equal(a["state_dict"][key], b["state_dict"][key]), key
-    assert [h["d_loss"] for h in a["history"]] == [h["d_loss"] for h in b["history"]]
-
-
-def test_non_finite_loss_stops_and_keeps_the_last_checkpoint(demo_clips, tmp_path, monkeypatch):
-    trainer = DVGANTrainer(demo_clips, model_config_for(demo_clips, "rnn", TINY), tiny_tc(epochs=3, checkpoint_every=1),
-                           tmp_path / "m.pt")
-    real = trainer.model.critic
-
-    def poisoned(x, labels):
-        out = real(x, labels)
-        return out * float("nan") if trainer.epoch >= 1 else out
-
-    monkeypatch.setattr(trainer.model, "critic", poisoned)
-    with pytest.raises(TrainingError, match="non-finite loss at epoch 2"):
-        trainer.run()
-    assert load_checkpoint(tmp_path / "m.pt")["epoch"] == 1
-
-
 # -- generate.complete and the CLI ------------------------------------------------------------
 
 def test_complete_checks_the_prefix(trained):
-    loaded = generate.load_model(trained["rnn"][0])
+    loaded = checkpoint.load_model(trained["rnn"][0])
     good = np.random.default_rng(0).normal(size=(8, 24, 3)).astype(np.float32)
     batch = generate.complete(loaded, good, 5, ["walk"], 2, seed=0)
     assert batch.motions.shape == (2, 16, 24, 3)
@@ -272,23 +234,23 @@ def test_complete_checks_the_prefix(trained):
         with pytest.raises(UserError, match=message.replace("-", r"\-")):
             generate.complete(loaded, prefix, frames, ["walk"], 2)
     with pytest.raises(UserError, match="is DVGAN-CNN, which does not complete; completion needs a DVGAN-RNN model"):
-        generate.complete(generate.load_model(trained["cnn"][0]), good, 5, ["walk"], 2)
+        generate.complete(checkpoint.load_model(trained["cnn"][0]), good, 5, ["walk"], 2)
 
 
 def test_odmo_does_not_complete(demo_clips, tmp_path):
-    from odmo_cli.train import TrainConfig, train_odmo
+    from odmo_cli.training.odmo import TrainConfig, train_odmo
 
     tc = TrainConfig(epochs=1, batch_size=8, pairs_per_epoch=8, val_fraction=0.0, val_every=0, checkpoint_every=0)
     path = train_odmo(demo_clips, tc, tmp_path / "odmo.pt", {"motion_hidden": 8, "traj_hidden": 8, "encoder_fc": 8}).out
     with pytest.raises(UserError, match="is ODMO, which does not complete; completion needs a DVGAN-RNN model"):
-        generate.complete(generate.load_model(path), np.zeros((30, 24, 3), np.float32), 5, ["walk"], 2)
+        generate.complete(checkpoint.load_model(path), np.zeros((30, 24, 3), np.float32), 5, ["walk"], 2)
 
 
 def test_cli_train_sample_and_complete(tmp_path, make_motion_folder):
     folder = make_motion_folder(tmp_path / "data", per_action=1, length=70)
     runner = CliRunner()
     model = tmp_path / "rnn.pt"
-    res = runner.invoke(app, ["train", "--model", "dvgan", "--generator", "rnn", "--dataset", str(folder),
+    res = runner.invoke(app, ["train", "dvgan", "--generator", "rnn", "--dataset", str(folder),
                               "--epochs", "1", "--batch-size", "6", "--n-critic", "2", "--out", str(model),
                               "--threads", "1", "--json"])
     assert res.exit_code == 0, res.output
@@ -314,21 +276,6 @@ def test_cli_train_sample_and_complete(tmp_path, make_motion_folder):
                               "--out", str(tmp_path / "bad.npz")])
     assert res.exit_code == 2 and "the prefix has 22 joints" in res.stderr and res.stderr.count("\n") == 1
     assert not (tmp_path / "bad.npz").exists()
-
-
-@pytest.mark.parametrize("args, message", [
-    (["--model", "dvgan", "--generator", "transformer"], "unknown DVGAN generator 'transformer'; valid: cnn, rnn"),
-    (["--model", "dvgan", "--epochs", "0"], "epochs, batch size and n_critic must be positive"),
-    (["--model", "dvgan", "--resume", "missing.pt"], "checkpoint not found"),
-    (["--generator", "rnn"], "--generator applies to --model dvgan only, not 'odmo'"),
-    (["--model", "dvgan", "--n-critic", "0"], "epochs, batch size and n_critic must be positive"),
-    (["--model", "a2m", "--n-critic", "5"], "--n-critic applies to --model dvgan only, not 'a2m'"),
-])
-def test_cli_train_dvgan_bad_input(tmp_path, args, message):
-    out = tmp_path / "m.pt"
-    res = CliRunner().invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--out", str(out), *args])
-    assert res.exit_code == 2 and message in res.stderr and res.stderr.count("\n") == 1
-    assert not out.exists()
 
 
 def test_cli_complete_refuses_a_cnn_model(trained, tmp_path):

@@ -10,8 +10,9 @@ import torch
 from typer.testing import CliRunner
 
 from odmo_cli.cli import app
+from odmo_cli.checkpoint import load_model, load_odmo
 from odmo_cli.errors import UserError
-from odmo_cli.generate import load_odmo, parse_point, sample
+from odmo_cli.generation.generate import interpolate, parse_point, sample
 from odmo_cli.latent import ActionModes, choose_k, discover_modes, knn_end_points, sample_codes
 
 # -- mode discovery --------------------------------------------------------------------------
@@ -146,7 +147,7 @@ def test_interpolation_walks_between_modes(lines_model, tmp_path):
 
 def test_modes_command_reports_and_plots(lines_model, tmp_path):
     plot = tmp_path / "codes.png"
-    res = CliRunner().invoke(app, ["modes", str(lines_model), "--json", "--plot", str(plot), "--colour", "mode"])
+    res = CliRunner().invoke(app, ["modes", "--model", str(lines_model), "--json", "--plot", str(plot), "--colour", "mode"])
     assert res.exit_code == 0, res.output
     import json
     rows = json.loads(res.stdout)["actions"]
@@ -195,12 +196,12 @@ def test_lazy_save_streams_the_same_bytes(lines_model, tmp_path):
     lazy = sample(loaded, ["all"], 7, seed=2, end="0.2,0.1", lazy=True)
     assert lazy.motions is None
     eager.save(tmp_path / "a.npz")
-    lazy.save(tmp_path / "b.npz")
+    lazy.save(tmp_path / "b.npz", loaded=loaded)
     a, b = np.load(tmp_path / "a.npz"), np.load(tmp_path / "b.npz")
     assert {k: np.array_equal(a[k], b[k]) for k in a.files} == {k: True for k in a.files}
     assert sha(tmp_path / "a.npz") == sha(tmp_path / "b.npz")
     assert lazy.dist_e() == pytest.approx(eager.dist_e())
-    assert np.allclose(lazy.head(3), eager.motions[:3], atol=1e-5)  # a smaller batch rounds differently
+    assert np.allclose(lazy.head(3, loaded), eager.motions[:3], atol=1e-5)  # a smaller batch rounds differently
 
 
 # -- baselines through the same sampler --------------------------------------------------------
@@ -219,25 +220,18 @@ class _NoiseModel(torch.nn.Module):
 
 @pytest.fixture
 def noise_checkpoint(tmp_path, monkeypatch):
-    import sys
-    import types
+    from odmo_cli import checkpoint
 
-    from odmo_cli import generate
-    from odmo_cli.io import save_checkpoint
-
-    module = types.ModuleType("fake_baseline")
-    module.model_from_checkpoint = lambda ckpt: _NoiseModel(**ckpt["config"])
-    monkeypatch.setitem(sys.modules, "fake_baseline", module)
-    monkeypatch.setitem(generate.BASELINES, "fake", "fake_baseline")
+    monkeypatch.setitem(checkpoint.BASELINES, "fake", lambda ckpt: _NoiseModel(**ckpt["config"]))
     path = tmp_path / "fake.pt"
-    save_checkpoint(path, {"kind": "fake", "config": {"length": 5, "n_joints": 3},
+    checkpoint.save_checkpoint(path, {"kind": "fake", "config": {"length": 5, "n_joints": 3},
                            "dataset": {"name": "toy", "actions": ["walk", "jump"], "skeleton": "humanact12",
                                        "fps": 20.0, "length": 5, "up_axis": "-y"}})
     return path
 
 
 def test_baseline_checkpoint_samples_through_the_common_sampler(noise_checkpoint):
-    from odmo_cli.generate import LoadedBaseline, load_model
+    from odmo_cli.checkpoint import LoadedBaseline
 
     loaded = load_model(noise_checkpoint)
     assert isinstance(loaded, LoadedBaseline) and loaded.actions == ["walk", "jump"]
@@ -254,9 +248,6 @@ def test_baseline_checkpoint_samples_through_the_common_sampler(noise_checkpoint
 @pytest.mark.parametrize("kwargs, flag", [({"mode": 0}, "--mode"), ({"mode_weights": [1.0]}, "--mode-weights"),
                                           ({"sampling": "conventional"}, "--sampling"), ({"end": "1,2"}, "--end")])
 def test_baseline_refuses_odmo_only_options(noise_checkpoint, kwargs, flag):
-    from odmo_cli.errors import UserError
-    from odmo_cli.generate import load_model
-
     with pytest.raises(UserError, match=flag):
         sample(load_model(noise_checkpoint), ["walk"], 2, **kwargs)
     with pytest.raises(UserError, match="needs an ODMO checkpoint"):
@@ -274,7 +265,7 @@ def test_sample_with_a_missing_model_names_the_choices(tmp_path):
 # -- the samples file ----------------------------------------------------------------------------
 
 def test_samples_file_records_units_version_model_and_asked_coordinates(lines_model, tmp_path):
-    from odmo_cli.generate import SAMPLES_FORMAT_VERSION
+    from odmo_cli.formats.samples import FORMAT_VERSION as SAMPLES_FORMAT_VERSION
 
     out = tmp_path / "s.npz"
     res = CliRunner().invoke(app, ["sample", "--model", str(lines_model), "--action", "glide", "--n", "3",
@@ -293,8 +284,7 @@ def test_samples_file_records_units_version_model_and_asked_coordinates(lines_mo
 
 
 def test_up_y_turns_a_minus_y_dataset_and_reads_back(noise_checkpoint, tmp_path):
-    from odmo_cli.generate import load_model
-    from odmo_cli.io import read_samples
+    from odmo_cli.formats.samples import read_samples
 
     batch = sample(load_model(noise_checkpoint), ["all"], 3, seed=0)
     batch.save(tmp_path / "own.npz")
@@ -308,3 +298,25 @@ def test_up_y_turns_a_minus_y_dataset_and_reads_back(noise_checkpoint, tmp_path)
     with pytest.raises(UserError, match="unknown --up 'z'"):
         batch.save(tmp_path / "bad.npz", up="z")
     assert not (tmp_path / "bad.npz").exists()
+
+
+def test_interpolation_without_ends_blends_the_first_two_modes_or_two_codes(lines_model, tmp_path):
+    loaded = load_odmo(lines_model)
+    for a, name in enumerate(loaded.actions):
+        k = len(loaded.action_modes(a).means)
+        batch = interpolate(loaded, name, steps=4)
+        assert f"{name} has {k} mode" in batch.note
+        if k >= 2:  # the first two modes' means
+            means = loaded.action_modes(a).means
+            assert np.allclose(batch.codes[0], means[0]) and np.allclose(batch.codes[-1], means[1])
+        else:  # the action's first and last latent-bank codes
+            own = np.flatnonzero(loaded.bank["labels"].numpy() == a)
+            bank = loaded.bank["codes"].numpy()
+            assert np.allclose(batch.codes[0], bank[own[0]]) and np.allclose(batch.codes[-1], bank[own[-1]])
+    res = CliRunner().invoke(app, ["interpolate", "--model", str(lines_model), "--action", "glide", "--steps", "3",
+                                   "--out", str(tmp_path / "b.npz")])
+    assert res.exit_code == 0, res.output
+    assert "glide has" in res.stdout
+    res = CliRunner().invoke(app, ["interpolate", "--model", str(lines_model), "--action", "glide", "--from-mode", "0",
+                                   "--out", str(tmp_path / "c.npz")])
+    assert res.exit_code == 2 and "or none of them" in res.stderr

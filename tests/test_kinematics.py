@@ -1,5 +1,5 @@
-"""`odmo_cli.kinematics` (LMP/trajectory split, root velocities, bone lengths) and the named
-skeletons of `odmo_cli.skeletons` (parents derived from chains, tree structure)."""
+"""`odmo_cli.geometry.kinematics` (LMP/trajectory split, root velocities, bone lengths) and the named
+skeletons of `odmo_cli.geometry.skeletons` (parents derived from chains, tree structure)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from odmo_cli.errors import UserError
-from odmo_cli.kinematics import bone_lengths, check_motion, join_lmp, root_velocities, split_lmp
-from odmo_cli.skeletons import SKELETONS, get_skeleton
+from odmo_cli.geometry.kinematics import bone_lengths, check_motion, join_lmp, root_velocities, split_lmp
+from odmo_cli.geometry.skeletons import SKELETONS, get_skeleton
 
 SMPL_PARENTS = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21)
 # cmu20: thorax/neck/head on the root, arms on the thorax (1), legs on the root.

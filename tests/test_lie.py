@@ -1,4 +1,4 @@
-"""Tests of odmo_cli.lie: so(3) maps, rest poses, inverse/forward kinematics, bone scaling.
+"""Tests of odmo_cli.geometry.lie: so(3) maps, rest poses, inverse/forward kinematics, bone scaling.
 
 Real-data tests read clips below $ODMO_DATA_DIR (humanact12/HumanAct12/*.npy and
 cmu_a2m/mocap_3djoints/*.npy) and are skipped when it is unset.
@@ -15,9 +15,9 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from odmo_cli import lie
+from odmo_cli.geometry import lie
 from odmo_cli.errors import UserError
-from odmo_cli.skeletons import SKELETONS, get_skeleton
+from odmo_cli.geometry.skeletons import SKELETONS, get_skeleton
 
 DATA_DIR = os.environ.get("ODMO_DATA_DIR")
 needs_data = pytest.mark.skipif(

@@ -20,7 +20,7 @@ import pytest
 from nbclient import NotebookClient
 
 import odmo_cli
-from odmo_cli.ship import shipped_file
+from odmo_cli.checkpoint import shipped_file
 
 REPO = Path(__file__).resolve().parents[1]
 NOTEBOOKS = sorted((REPO / "notebooks").glob("*.ipynb"))
@@ -106,7 +106,7 @@ def test_notebook_runs_headless(path, tmp_path):
     if "load_odmo(None)" in code_of(nb) and shipped_file("humanact12") is None:
         pytest.skip(f"{path.name} needs the shipped default model odmo_cli/assets/models/odmo_humanact12.pt, "
                     "not in this install yet")
-    if "shipped_classifier" in code_of(nb) and shipped_file("humanact12", "classifier_file") is None:
+    if "shipped_classifier" in code_of(nb) and shipped_file("humanact12", "classifier") is None:
         pytest.skip(f"{path.name} needs the shipped classifier odmo_cli/assets/models/classifier_humanact12.pt, "
                     "not in this install yet")
     # the kernel must import the odmo_cli under test, whether installed or on the test's path

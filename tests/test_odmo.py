@@ -1,4 +1,5 @@
-"""ODMO model, loss terms and the training loop (issue: ODMO model and `odmo train`)."""
+"""ODMO model, loss terms and its training (issue: ODMO model and `odmo train`); resume, Ctrl-C and
+the non-finite stop are tested for every trainer in test_training_loop.py."""
 
 from __future__ import annotations
 
@@ -13,11 +14,9 @@ from odmo_cli.cli import app
 from odmo_cli.data.demo import demo_folder
 from odmo_cli.data.locate import resolve
 from odmo_cli.data.readers import read_dataset
-from odmo_cli.errors import TrainingError
-from odmo_cli.io import load_checkpoint
 from odmo_cli.models import losses
 from odmo_cli.models.odmo import ODMO, ODMOConfig, condition
-from odmo_cli.train import TrainConfig, Trainer, model_config_for, train_odmo
+from odmo_cli.training.odmo import ODMOTrainer, TrainConfig, model_config_for, train_odmo
 
 
 @pytest.fixture(scope="module")
@@ -262,36 +261,11 @@ def small_tc(**kw) -> TrainConfig:
 def test_tiny_training_decreases_the_loss(demo_clips, tmp_path):
     torch.manual_seed(0)
     cfg = model_config_for(demo_clips, {"motion_hidden": 32, "traj_hidden": 32})
-    trainer = Trainer(demo_clips, cfg, small_tc(epochs=12, tf_start=1.0, tf_end=1.0), tmp_path / "m.pt")
+    trainer = ODMOTrainer(demo_clips, cfg, small_tc(epochs=12, tf_start=1.0, tf_end=1.0), tmp_path / "m.pt")
     history = trainer.run()
     first, last = history[0]["total"], np.mean([h["total"] for h in history[-3:]])
     assert last < 0.7 * first, (first, last)
     assert history[-1]["mre"] < history[0]["mre"]
-
-
-def test_resume_gives_the_same_parameters(demo_clips, tmp_path, monkeypatch):
-    overrides = {"motion_hidden": 16, "traj_hidden": 16}
-    full = train_odmo(demo_clips, small_tc(epochs=4), tmp_path / "full.pt", overrides)
-    # the same run, interrupted after epoch 2 (Ctrl-C), then resumed
-    real = Trainer.train_epoch
-
-    def stop_at_two(self):
-        if self.epoch == 2:
-            raise KeyboardInterrupt
-        return real(self)
-
-    monkeypatch.setattr(Trainer, "train_epoch", stop_at_two)
-    with pytest.raises(KeyboardInterrupt):
-        train_odmo(demo_clips, small_tc(epochs=4), tmp_path / "part.pt", overrides)
-    assert load_checkpoint(tmp_path / "part.pt")["epoch"] == 2
-    monkeypatch.setattr(Trainer, "train_epoch", real)
-    train_odmo(demo_clips, small_tc(epochs=4), tmp_path / "part.pt", resume=tmp_path / "part.pt")
-    a, b = load_checkpoint(full.out), load_checkpoint(tmp_path / "part.pt")
-    assert a["epoch"] == b["epoch"] == 4
-    for key in a["state_dict"]:
-        assert torch.equal(a["state_dict"][key], b["state_dict"][key]), key
-    assert [h["total"] for h in a["history"]] == [h["total"] for h in b["history"]]
-    assert torch.equal(a["latent_bank"]["codes"], b["latent_bank"]["codes"])
 
 
 def test_checkpoint_is_safe_and_holds_the_latent_bank(demo_clips, tmp_path):
@@ -307,46 +281,10 @@ def test_checkpoint_is_safe_and_holds_the_latent_bank(demo_clips, tmp_path):
     # the bank's codes are the encoder's means of the first-T-frame crops
     model = ODMO(ODMOConfig.from_dict(ckpt["config"]))
     model.load_state_dict(ckpt["state_dict"])
-    from odmo_cli.train import crops_from_start
+    from odmo_cli.data.dataset import crops_from_start
     motion, _ = crops_from_start(demo_clips, ckpt["split"]["train"].numpy()[:4], 60)
     assert torch.allclose(model.eval().encode(motion)[0], bank["codes"][:4], atol=1e-5)
-    report = result.report
-    assert 0 <= report["nearest_centroid_acc"] <= 1 and report["held_out_mpjpe"] > 0
-
-
-def test_non_finite_loss_stops_and_keeps_the_last_checkpoint(demo_clips, tmp_path, monkeypatch):
-    trainer = Trainer(demo_clips, model_config_for(demo_clips, {"motion_hidden": 16}),
-                      small_tc(epochs=3, checkpoint_every=1), tmp_path / "m.pt")
-    real = losses.odmo_terms
-    calls = {"n": 0}
-
-    def poisoned(*args):
-        calls["n"] += 1
-        terms = real(*args)
-        if trainer.epoch >= 1:
-            terms["mre"] = terms["mre"] * float("nan")
-        return terms
-
-    monkeypatch.setattr("odmo_cli.train.odmo_terms", poisoned)
-    with pytest.raises(TrainingError, match="non-finite loss at epoch 2"):
-        trainer.run()
-    assert load_checkpoint(tmp_path / "m.pt")["epoch"] == 1
-
-
-def test_ctrl_c_keeps_the_last_completed_epoch(demo_clips, tmp_path, monkeypatch):
-    trainer = Trainer(demo_clips, model_config_for(demo_clips, {"motion_hidden": 16}),
-                      small_tc(epochs=5), tmp_path / "m.pt")
-    real = trainer.train_epoch
-
-    def interrupt():
-        if trainer.epoch == 2:
-            raise KeyboardInterrupt
-        return real()
-
-    monkeypatch.setattr(trainer, "train_epoch", interrupt)
-    with pytest.raises(KeyboardInterrupt):
-        trainer.run()
-    assert load_checkpoint(tmp_path / "m.pt")["epoch"] == 2
+    assert result.report["held_out_mpjpe"] > 0
 
 
 def test_teacher_forcing_decays_linearly():
@@ -368,27 +306,8 @@ def test_cli_train_and_info(tmp_path):
     assert res.exit_code == 0, res.output
     config = torch.load(out, weights_only=True)["config"]
     assert config["sigma2"] == 0.0025 and config["recon_weight"] == 2.0 and config["energy_weight"] == 1.5
-    res = runner.invoke(app, ["info", str(out), "--json"])
+    res = runner.invoke(app, ["info", "--model", str(out), "--json"])
     assert res.exit_code == 0 and '"kind": "odmo"' in res.stdout and '"weights": "float32"' in res.stdout
-
-
-@pytest.mark.parametrize("args, message", [
-    (["--ablate", "nope"], "unknown ablation 'nope'; valid: es, traj, cons, end-point"),
-    (["--epochs", "0"], "epochs and batch size must be positive"),
-    (["--model", "gan"], "unknown model 'gan'; valid: odmo, classifier"),
-    (["--resume", "missing.pt"], "checkpoint not found"),
-    (["--sigma2", "0"], "--sigma2 must be a positive number, got 0.0"),
-    (["--recon-weight", "-1"], "--recon-weight must be a positive number, got -1.0"),
-    (["--same-class-fraction", "1.5"], "--same-class-fraction must be in [0, 1] (or -1: independent pairs), got 1.5"),
-    (["--energy-weight", "-1"], "--energy-weight must not be negative, got -1.0"),
-])
-def test_cli_train_bad_input(tmp_path, args, message):
-    out = tmp_path / "m.pt"
-    res = CliRunner().invoke(app, ["train", "--dataset", str(demo_folder("humanact12")),
-                                   "--out", str(out), *args])
-    assert res.exit_code == 2
-    assert message in res.stderr and res.stderr.count("\n") == 1
-    assert not out.exists() and list(tmp_path.iterdir()) == []
 
 
 def test_presets_per_dataset():

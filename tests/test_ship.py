@@ -7,11 +7,11 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from odmo_cli import ship
+from odmo_cli import checkpoint, ship
+from odmo_cli.checkpoint import describe_checkpoint, load_checkpoint, load_model, save_checkpoint
 from odmo_cli.cli import app
 from odmo_cli.errors import UserError
-from odmo_cli.generate import load_model, sample
-from odmo_cli.io import describe_checkpoint, load_checkpoint, save_checkpoint
+from odmo_cli.generation.generate import sample
 
 
 def test_compact_keeps_what_sampling_needs_in_half_the_space(lines_model, tmp_path):
@@ -39,7 +39,7 @@ def test_compact_stores_large_matrices_as_int8_rows(lines_model, tmp_path):
     (name,) = small["int8_scales"]  # only the largest matrix is rounded to int8
     assert small["state_dict"][name].dtype == torch.int8 and name in small["weights_dtype"]
     assert small["int8_scales"][name].shape == (full["state_dict"][name].shape[0], 1)
-    restored = ship.float_state(small)[name]
+    restored = checkpoint.float_state(small)[name]
     assert restored.dtype == torch.float32
     step = small["int8_scales"][name].float()
     assert torch.all((restored - full["state_dict"][name]).abs() <= 0.5 * step + 1e-6)
@@ -79,9 +79,10 @@ def test_cli_refuses_a_dataset_without_recipe(tmp_path):
 def test_build_writes_both_files_deterministically(lines_folder, tmp_path, monkeypatch):
     """The whole pipeline on the tiny lines dataset with a tiny recipe, twice with the same seed."""
     tiny = {"odmo": {"epochs": 3, "batch_size": 40, "pairs_per_epoch": 80, "val_every": 0, "threads": 1},
-            "classifier": {"epochs": 2, "threads": 1, "speed": 1.0},
-            "file": "odmo_lines.pt", "classifier_file": "classifier_lines.pt"}
+            "classifier": {"epochs": 2, "threads": 1, "speed": 1.0}}
     monkeypatch.setitem(ship.RECIPES, str(lines_folder), tiny)
+    monkeypatch.setitem(checkpoint.SHIPPED, str(lines_folder),
+                        {"short": "lines", "odmo": "odmo_lines.pt", "classifier": "classifier_lines.pt"})
     weights = []
     for run in ("a", "b"):
         out = tmp_path / run
@@ -89,6 +90,8 @@ def test_build_writes_both_files_deterministically(lines_folder, tmp_path, monke
         reports = ship.build(str(lines_folder), None, out, seed=3, say=lambda m: None)
         assert sorted(p.name for p in out.iterdir()) == ["classifier_lines.pt", "odmo_lines.pt"]
         assert reports["odmo"]["epochs"] == 3 and "val_accuracy" in reports["classifier"]
+        clf = torch.load(out / "classifier_lines.pt", weights_only=True)  # what --held-out and eval need, no optimizer
+        assert {"split", "report", "state_dict"} <= set(clf) and {"optimizer", "rng"}.isdisjoint(clf)
         ckpt = torch.load(out / "odmo_lines.pt", weights_only=True)
         assert ckpt["kind"] == "odmo" and ckpt["train_config"]["seed"] == 3
         weights.append(ckpt["state_dict"])

@@ -9,8 +9,9 @@ import torch
 from odmo_cli.data.locate import resolve
 from odmo_cli.data.manifest import load_manifest
 from odmo_cli.data.readers import read_dataset
-from odmo_cli.evaluate import shipped_classifier
-from odmo_cli.models.classifier import check_matches, crop_batch, load_classifier
+from odmo_cli.evaluation.classifier import check_matches, load_classifier
+from odmo_cli.evaluation.protocol import shipped_classifier
+from odmo_cli.training.classifier import crop_batch
 
 def assert_describes(ckpt: dict, manifest) -> None:
     """The checkpoint names the dataset's actions, skeleton, clip length and fps."""
@@ -56,7 +57,7 @@ def test_shipped_classifier_accuracy_on_held_out_real_clips(name, data_dir):
 def _real_set(clips, manifest, seed: int, rate: float = 1.0, n: int = 100):
     """n random crops per action (first root at the origin), each clip first replayed at `rate`."""
     from odmo_cli.data.dataset import crop_pad_shift, random_start
-    from odmo_cli.models.classifier import _resample
+    from odmo_cli.training.classifier import _resample
 
     rng = np.random.default_rng(seed)
     motions, labels = [], []
@@ -99,8 +100,8 @@ SHIPPED_ODMO = [
 
 @pytest.mark.parametrize("short, dataset", SHIPPED_ODMO)
 def test_shipped_odmo_loads_safely_and_describes_its_data(short, dataset):
-    from odmo_cli.generate import load_model, sample
-    from odmo_cli.ship import shipped_file
+    from odmo_cli.checkpoint import load_model, shipped_file
+    from odmo_cli.generation.generate import sample
 
     path = shipped_file(short)
     assert path is not None, f"no shipped {short} model"
@@ -188,7 +189,7 @@ def test_unmet_bars_names_each_miss():
 def test_shipped_odmo_meets_its_quality_bar(short, dataset, data_dir):
     """The default protocol (10 repeats, the paper's samples per action, the shipped classifier),
     with the end-point protocol (§4.4) for dist_e."""
-    from odmo_cli.evaluate import EvalConfig, run_evaluation
+    from odmo_cli.evaluation.protocol import EvalConfig, run_evaluation
 
     report = run_evaluation([short], dataset, data_dir, None, EvalConfig(), with_customization=True)
     real, model = report.rows

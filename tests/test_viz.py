@@ -10,7 +10,7 @@ import pytest
 
 from odmo_cli import viz
 from odmo_cli.errors import UserError
-from odmo_cli.skeletons import get_skeleton
+from odmo_cli.geometry.skeletons import get_skeleton
 
 SK = get_skeleton("humanact12")
 

@@ -9,12 +9,13 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from odmo_cli.cli.common import (DataOpt, DatasetArg, DemoOpt, JsonOpt, SeedOpt, print_json, resolve_spec, console, data_app, err_console)
+from odmo_cli.cli.common import (Command, DataOpt, DatasetArg, DemoOpt, JsonOpt, SeedOpt, WideOpt, console, data_app, err_console,
+                                 print_json, resolve_spec)
 from odmo_cli.errors import UserError
 
 
-@data_app.command("list")
-def data_list(data: DataOpt = None, as_json: JsonOpt = False):
+@data_app.command("list", cls=Command)
+def data_list(data: DataOpt = None, as_json: JsonOpt = False, wide: WideOpt = False):
     """Table of known datasets and whether each is on disk."""
     from odmo_cli.data.locate import data_root, find_release
     from odmo_cli.data.manifest import available_manifests, load_manifest
@@ -28,18 +29,26 @@ def data_list(data: DataOpt = None, as_json: JsonOpt = False):
                      "present": str(where) if where else None})
     if as_json:
         return print_json({"data_root": str(data_root(data)), "datasets": rows})
-    table = Table(title=f"datasets (data root: {data_root(data)})")
-    for col in ("name", "title", "actions", "clips", "skeleton", "on disk"):
-        table.add_column(col)
+    table = Table(title="datasets")
+    columns = ("name", "title", "actions", "clips", "skeleton", "on disk") if wide else ("name", "actions", "clips",
+                                                                                          "skeleton", "on disk")
+    for col in columns:
+        table.add_column(col, no_wrap=col in ("name", "on disk"))
     for r in rows:
-        table.add_row(r["name"], r["title"], str(r["actions"]), str(r["clips"]), r["skeleton"],
-                      r["present"] or "[dim]no[/dim]")
+        cells = {"name": r["name"], "title": r["title"], "actions": str(r["actions"]), "clips": str(r["clips"]),
+                 "skeleton": r["skeleton"]}
+        cells["on disk"] = (r["present"] if wide else "yes") if r["present"] else "[dim]no[/dim]"
+        table.add_row(*(cells[c] for c in columns))
     console.print(table)
+    # the root on a line of its own: a path is never wrapped, the hint would push it past 80 columns
+    console.print(f"data root: {data_root(data)}", highlight=False, soft_wrap=True)
+    if not wide:
+        console.print("titles and folders: --wide", highlight=False)
 
 
-@data_app.command("info")
+@data_app.command("info", cls=Command)
 def data_info(dataset: DatasetArg, data: DataOpt = None, demo: DemoOpt = False,
-              verify: Annotated[bool, typer.Option(help="Check files against the manifest's SHA-256.")] = True,
+              verify: Annotated[bool, typer.Option(help="Check files against the manifest's SHA-256.", metavar="")] = True,
               as_json: JsonOpt = False):
     """Actions x clips x lengths; flags missing, extra or corrupt files against the manifest."""
     from odmo_cli.data.prepare import summarize
@@ -67,7 +76,7 @@ def data_info(dataset: DatasetArg, data: DataOpt = None, demo: DemoOpt = False,
                                        else "[red]do not match the manifest[/red]"))
 
 
-@data_app.command("fetch")
+@data_app.command("fetch", cls=Command)
 def data_fetch(dataset: Annotated[str, typer.Argument(help="Dataset name or a manifest .toml path.")],
                to: Annotated[Path, typer.Option("--to", help="Folder to download into.")],
                as_json: JsonOpt = False):
@@ -101,7 +110,7 @@ def data_fetch(dataset: Annotated[str, typer.Argument(help="Dataset name or a ma
                   f"{len(result.present)} already present and verified, {len(result.extracted)} extracted")
 
 
-@data_app.command("prepare")
+@data_app.command("prepare", cls=Command)
 def data_prepare(source: Annotated[Path, typer.Argument(help="The release folder to convert.")],
                  fmt: Annotated[str, typer.Option("--format", help="humanact12 | cmu_a2m | folder | bvh")],
                  out: Annotated[Path, typer.Option("--out", help="New motion folder to write.")],
@@ -145,7 +154,7 @@ def data_prepare(source: Annotated[Path, typer.Argument(help="The release folder
                   f"({manifest.skeleton_name}, {manifest.fps:g} fps)")
 
 
-@data_app.command("show")
+@data_app.command("show", cls=Command)
 def data_show(dataset: DatasetArg, action: Annotated[str, typer.Option("--action", help="Action name.")],
               out: Annotated[Optional[Path], typer.Option("--out", help=".gif or .mp4 (animated) or .png")] = None,
               n: Annotated[int, typer.Option("--n", help="How many clips.")] = 4,

@@ -8,13 +8,14 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from odmo_cli.cli.common import DataOpt, ModelOpt, SeedOpt, app, console, err_console
+from odmo_cli.cli.common import Command, DataOpt, JsonOpt, ModelOpt, SeedOpt, WideOpt, app, console, err_console, print_json
 from odmo_cli.errors import UserError
 
 
-METRIC_HEADS = {"accuracy": "Acc ↑", "fid": "FID ↓", "diversity": "Diversity →", "multimodality": "MModality →",
+METRIC_HEADS = {"accuracy": "Acc ↑", "fid": "FID ↓", "diversity": "Div →", "multimodality": "MM →",
                 "inception": "IS ↑", "n_apd": "n-APD", "bone_std": "bone std ↓", "speed": "speed →1",
                 "amplitude": "amplitude →1"}
+NARROW = ("accuracy", "fid", "diversity", "multimodality")  # the papers' four; --wide adds the rest
 
 
 def evaluate(
@@ -22,20 +23,20 @@ def evaluate(
     model: Annotated[Optional[str], typer.Option("--model", help="Checkpoint or shipped name (default humanact12 when no other model or samples are named).")] = None,
     compare: Annotated[Optional[list[str]], typer.Option("--compare", help="More checkpoints for the same table; CKPT@conventional: that row samples conventionally.")] = None,
     dataset: Annotated[Optional[str], typer.Option("--dataset", help="Dataset (default: the model's).")] = None,
-    classifier: Annotated[Optional[str], typer.Option("--classifier", help="Classifier checkpoint or Action2Motion .tar.")] = None,
-    repeats: Annotated[int, typer.Option("--repeats")] = 10,
+    classifier: Annotated[Optional[str], typer.Option("--classifier", help="Classifier checkpoint or Action2Motion .tar (default: the shipped one of the dataset).")] = None,
+    repeats: Annotated[int, typer.Option("--repeats", help="Sets generated per model; each metric is their mean ± 95% CI.")] = 10,
     per_action: Annotated[int, typer.Option("--per-action", help="Samples per action (0: the paper's).")] = 0,
-    sampling: Annotated[str, typer.Option("--sampling", help="mode-preserving | conventional")] = "mode-preserving",
-    samples: Annotated[Optional[list[Path]], typer.Option("--samples", help="Evaluate a samples .npz made elsewhere.")] = None,
-    customization: Annotated[bool, typer.Option("--customization", help="Also the end-point protocol (§4.4).")] = False,
-    held_out: Annotated[bool, typer.Option("--held-out", help="Also a row for the real clips the classifier never trained on (odmo classifiers).")] = False,
-    by_action: Annotated[bool, typer.Option("--by-action", help="Also print each row's accuracy, speed and amplitude ratios per action.")] = False,
-    json_out: Annotated[Optional[Path], typer.Option("--json", help="Write the full report as JSON here.")] = None,
-    data: DataOpt = None, seed: SeedOpt = 0,
+    sampling: Annotated[str, typer.Option("--sampling", help="How ODMO draws codes: mode-preserving or conventional (one Gaussian per action).")] = "mode-preserving",
+    samples: Annotated[Optional[list[Path]], typer.Option("--samples", help="Also score a samples .npz made elsewhere (repeatable; its dataset is the file's unless --dataset).")] = None,
+    customization: Annotated[bool, typer.Option("--customization", help="Also the end-point protocol (§4.4).", metavar="")] = False,
+    held_out: Annotated[bool, typer.Option("--held-out", help="Also a row for the real clips the classifier never trained on (odmo classifiers).", metavar="")] = False,
+    by_action: Annotated[bool, typer.Option("--by-action", help="Also print each row's accuracy, speed and amplitude ratios per action.", metavar="")] = False,
+    out: Annotated[Optional[Path], typer.Option("--out", help="Also write the full report (every repeat) as JSON here.")] = None,
+    data: DataOpt = None, seed: SeedOpt = 0, as_json: JsonOpt = False, wide: WideOpt = False,
 ):
     """The evaluation protocol: Acc, FID, Diversity, Multimodality, n-APD, bone std, and the speed and
     amplitude of the body's motion over the real motions' (mean ± 95% CI)."""
-    from odmo_cli.evaluate import EvalConfig, run_evaluation
+    from odmo_cli.evaluation.protocol import EvalConfig, run_evaluation
     from odmo_cli.io import atomic_path
 
     cfg = EvalConfig(repeats=repeats, per_action=per_action, sampling=sampling, seed=seed)
@@ -45,16 +46,27 @@ def evaluate(
     with err_console.status("evaluating ..."):
         report = run_evaluation(models, dataset, data, classifier, cfg, list(samples or []), customization,
                                 held_out=held_out)
+    if out is not None:
+        import json
+
+        with atomic_path(out) as tmp:
+            tmp.write_text(json.dumps(report.__dict__, indent=2, default=str))
+    if as_json:
+        return print_json(report.__dict__)
     table = Table(title=f"{report.dataset}: {report.config['repeats']} repeats x {report.config['per_action']} "
                         f"per action, classifier {Path(report.classifier).name} ({report.seconds:.0f} s)")
     table.add_column("model")
-    for key in METRIC_HEADS:
+    keys = list(METRIC_HEADS) if wide else list(NARROW)
+    for key in keys:
         table.add_column(METRIC_HEADS[key], justify="right")
     for row in report.rows:
-        table.add_row(row["name"], *(f"{row['metrics'][k][0]:.{3 if k in ('fid', 'bone_std') else 2}f}"
-                                     f" ±{row['metrics'][k][1]:.2f}" if k in row["metrics"] else "-"
-                                     for k in METRIC_HEADS))
+        table.add_row(row["name"], *(_cell(row, k) for k in keys))
     console.print(table)
+    for row in report.rows:
+        for why in row.get("not_available", []):
+            console.print(f"{row['name']}: {why}", highlight=False, markup=False)
+    if not wide:
+        console.print("IS, n-APD, bone std, speed and amplitude ratios: --wide (all of it: --json)", style="dim")
     if by_action:
         for key, title, digits in (("by_action", "accuracy", 1), ("speed_by_action", "speed ratio", 2),
                                    ("amplitude_by_action", "amplitude ratio", 2)):
@@ -63,12 +75,17 @@ def evaluate(
         m = c["metrics"]
         console.print(f"customization {c['name']}: Acc {m['accuracy'][0]:.2f} ±{m['accuracy'][1]:.2f}, "
                       f"dist_e {m['dist_e'][0]:.4f} ±{m['dist_e'][1]:.4f}")
-    if json_out is not None:
-        import json
+    if out is not None:
+        console.print(f"wrote {out}")
 
-        with atomic_path(json_out) as tmp:
-            tmp.write_text(json.dumps(report.__dict__, indent=2, default=str))
-        console.print(f"wrote {json_out}")
+
+def _cell(row: dict, key: str) -> str:
+    if key not in row["metrics"]:
+        return "-"
+    mean, half = row["metrics"][key]
+    if mean != mean:  # NaN: not available for this row (see its note)
+        return "n/a"
+    return f"{mean:.{3 if key in ('fid', 'bone_std') else 2}f} ±{half:.{3 if key in ('fid', 'bone_std') else 2}f}"
 
 
 def _by_action_table(rows: list[dict], key: str, title: str, digits: int) -> Table:
@@ -84,22 +101,24 @@ def _by_action_table(rows: list[dict], key: str, title: str, digits: int) -> Tab
     return table
 
 
-app.command("evaluate")(evaluate)
-app.command("eval", help="Alias of evaluate.")(evaluate)
+app.command("evaluate", cls=Command)(evaluate)
+app.command("eval", cls=Command, help="Alias of evaluate.")(evaluate)
 
 
 BENCH_PARTS = ("sampling", "end-to-end", "training", "evaluation")
 
 
-@app.command("bench")
+@app.command("bench", cls=Command)
 def bench(
     model: ModelOpt = None, data: DataOpt = None,
     runs: Annotated[int, typer.Option("--runs", help="Runs per figure (median reported).")] = 5,
-    only: Annotated[Optional[list[str]], typer.Option("--only", help="sampling, end-to-end, training, evaluation")] = None,
-    json_out: Annotated[Optional[Path], typer.Option("--json", help="Also write the figures as JSON here.")] = None,
+    only: Annotated[Optional[list[str]], typer.Option("--only", help="A part to run (repeatable): sampling, end-to-end, training, evaluation.")] = None,
+    peer: Annotated[Optional[Path], typer.Option("--peer", help="The authors' networks' timer, bench_peer.py (default: ../shared/peer/bench_peer.py when it exists); its figures join the table, measured in the same run.")] = None,
+    out: Annotated[Optional[Path], typer.Option("--out", help="Also write the figures as JSON here.")] = None,
+    as_json: JsonOpt = False, wide: WideOpt = False,
 ):
     """Speed and memory on this machine (median, min and max of several runs)."""
-    from odmo_cli.bench import run_bench
+    from odmo_cli.evaluation.bench import run_bench
     from odmo_cli.io import atomic_path
 
     bad = [p for p in only or [] if p not in BENCH_PARTS]
@@ -108,20 +127,28 @@ def bench(
     if runs <= 0:
         raise UserError(f"--runs must be positive, got {runs}")
     with err_console.status("benchmarking ...") as status:
-        report = run_bench(model, data, runs, tuple(only or ()), lambda part: status.update(f"benchmarking {part} ..."))
+        report = run_bench(model, data, runs, tuple(only or ()), lambda part: status.update(f"benchmarking {part} ..."),
+                           peer)
     m = report.machine
+    payload = {"machine": m, "figures": [f.to_json() for f in report.figures], "skipped": report.skipped}
+    if out is not None:
+        import json
+
+        with atomic_path(out) as tmp:
+            tmp.write_text(json.dumps(payload, indent=2))
+    if as_json:
+        return print_json(payload)
     table = Table(title=f"odmo bench: {m['cpu']}, {m['cores']} cores, torch {m['torch']} ({m['threads']} threads)")
-    for col in ("figure", "median", "min", "max", "unit", "runs", "note"):
-        table.add_column(col, justify="right" if col in ("median", "min", "max", "runs") else "left")
+    columns = ("figure", "median", "min", "max", "unit", "runs", "note") if wide else ("figure", "median", "range", "unit")
+    for col in columns:
+        table.add_column(col, justify="right" if col in ("median", "min", "max", "runs", "range") else "left")
     for f in report.figures:
         j = f.to_json()
-        table.add_row(f.name, f"{j['median']:.3g}", f"{j['min']:.3g}", f"{j['max']:.3g}", f.unit, str(j["runs"]), f.note)
+        cells = {"figure": f.name, "median": f"{j['median']:.3g}", "min": f"{j['min']:.3g}", "max": f"{j['max']:.3g}",
+                 "range": f"{j['min']:.3g}-{j['max']:.3g}", "unit": f.unit, "runs": str(j["runs"]), "note": f.note}
+        table.add_row(*(cells[c] for c in columns))
     console.print(table)
     for s in report.skipped:
         console.print(f"skipped {s}", highlight=False)
-    if json_out is not None:
-        import json
-
-        with atomic_path(json_out) as tmp:
-            tmp.write_text(json.dumps({"machine": m, "figures": [f.to_json() for f in report.figures],
-                                       "skipped": report.skipped}, indent=2))
+    if not wide:
+        console.print("runs and notes: --wide (or --json)", style="dim")

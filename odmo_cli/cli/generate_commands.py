@@ -8,19 +8,17 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from odmo_cli.cli.common import (DataOpt, EndOpt, JsonOpt, ModelOpt, OutOpt, SeedOpt, UpOpt, print_json, app,
-                                 console, err_console)
+from odmo_cli.cli.common import (Command, DataOpt, EndOpt, JsonOpt, ModelOpt, OutOpt, SeedOpt, UpOpt, WideOpt, app, console,
+                                 err_console, print_json)
 from odmo_cli.errors import UserError
 
 
-@app.command("info")
-def info(checkpoint: Annotated[str, typer.Argument(help="A checkpoint (.pt), or a shipped model: humanact12, cmu.")],
-         as_json: JsonOpt = False):
+@app.command("info", cls=Command)
+def info(model: ModelOpt = None, as_json: JsonOpt = False):
     """What a checkpoint holds: model kind, configs, dataset, epochs, final report."""
-    from odmo_cli.generate import checkpoint_path
-    from odmo_cli.io import describe_checkpoint
+    from odmo_cli.checkpoint import checkpoint_path, describe_checkpoint
 
-    desc = describe_checkpoint(checkpoint_path(checkpoint))
+    desc = describe_checkpoint(checkpoint_path(model))
     if as_json:
         return print_json(desc)
     for key, value in desc.items():
@@ -40,9 +38,12 @@ def _summary(batch, out: Path, as_json: bool, extra: dict | None = None) -> None
         per_action.setdefault(str(a), {}).setdefault(int(m), 0)
         per_action[str(a)][int(m)] += 1
     payload = {"out": str(out), "motions": len(batch), "model": batch.model, "seed": batch.seed,
-               "frames": int(batch.loaded.model.cfg.length), "actions": per_action, "dist_e": batch.dist_e(), **(extra or {})}
+               "frames": int(batch.dataset["length"]), "actions": per_action, "dist_e": batch.dist_e(),
+               **({"note": batch.note} if batch.note else {}), **(extra or {})}
     if as_json:
         return print_json(payload)
+    if batch.note:
+        console.print(batch.note, highlight=False)
     table = Table(title=f"{len(batch)} motions -> {out}")
     table.add_column("action")
     table.add_column("motions", justify="right")
@@ -58,12 +59,12 @@ def _summary(batch, out: Path, as_json: bool, extra: dict | None = None) -> None
 
 
 UnitsOpt = Annotated[str, typer.Option("--units", help="BVH units: cm (most tools and rigs) or m.")]
-FloorOpt = Annotated[bool, typer.Option("--floor/--no-floor", help="BVH: lift the motion so its lowest foot touches y = 0.")]
+FloorOpt = Annotated[bool, typer.Option("--floor/--no-floor", help="BVH: lift the motion so its lowest foot touches y = 0.", metavar="")]
 HelpersOpt = Annotated[bool, typer.Option("--helper-joints", help="BVH: a zero-length joint per child of the pelvis and chest "
-                                                                  "(one bone per child; exact however the torso bends).")]
+                                                                  "(one bone per child; exact however the torso bends).", metavar="")]
 
 
-@app.command("sample")
+@app.command("sample", cls=Command)
 def sample_cmd(
     action: Annotated[list[str], typer.Option("--action", help="Action name (repeatable), or all.")],
     n: Annotated[int, typer.Option("--n", help="Motions per action (per end point).")] = 20,
@@ -83,8 +84,9 @@ def sample_cmd(
     seed: SeedOpt = 0, as_json: JsonOpt = False,
 ):
     """Generate motions of the given actions (the samples file is described in docs/formats.md)."""
-    from odmo_cli.bvh import BvhOptions
-    from odmo_cli.generate import load_model, sample
+    from odmo_cli.checkpoint import load_model
+    from odmo_cli.formats.bvh import BvhOptions
+    from odmo_cli.generation.generate import sample
 
     bvh_options = BvhOptions(units, floor, helpers)  # checked before any work
 
@@ -93,19 +95,19 @@ def sample_cmd(
     weights = _floats(mode_weights, "--mode-weights") if mode_weights is not None else None
     loaded = load_model(model)
     batch = sample(loaded, action, n, seed, mode, weights, sampling, end, end_from, end_to, steps, lazy=True)
-    batch.save(out, up)  # decodes batch by batch while writing: memory stays flat in n
+    batch.save(out, up, loaded)  # decodes batch by batch while writing: memory stays flat in n
     if gif is not None:
-        from odmo_cli.skeletons import get_skeleton
+        from odmo_cli.geometry.skeletons import get_skeleton
         from odmo_cli.viz import animate
 
         k = min(len(batch), 8)
-        _, notice = animate(batch.head(k), get_skeleton(batch.dataset["skeleton"]), gif, fps=batch.dataset["fps"],
+        _, notice = animate(batch.head(k, loaded), get_skeleton(batch.dataset["skeleton"]), gif, fps=batch.dataset["fps"],
                             titles=[f"{a} #{i}" for i, a in enumerate(batch.actions[:k])], end_points=batch.end_points[:k])
         if notice:
             err_console.print(notice, highlight=False, markup=False)
     extra = None
     if bvh is not None:
-        from odmo_cli.bvh import export_samples
+        from odmo_cli.formats.bvh import export_samples
 
         report = export_samples(out, bvh, bvh_options)  # from the file just written: the batch is not kept decoded
         extra = {"bvh": str(bvh), "bvh_files": len(report.files), "bvh_max_error_mm": report.max_error_mm,
@@ -123,7 +125,7 @@ def _bvh_note(report, folder: Path) -> None:
                   f"{report.max_stretch_mm:.2f} mm; a BVH keeps each bone's mean length)", highlight=False)
 
 
-@app.command("export")
+@app.command("export", cls=Command)
 def export_cmd(
     samples: Annotated[Path, typer.Argument(help="A samples file (.npz) from odmo sample/interpolate.")],
     bvh: Annotated[Path, typer.Option("--bvh", help="Folder for the BVH files (one per motion).")],
@@ -131,7 +133,7 @@ def export_cmd(
     as_json: JsonOpt = False,
 ):
     """Write every motion of a samples file as a BVH file (y-up, the model's fps; docs/formats.md)."""
-    from odmo_cli.bvh import BvhOptions, export_samples
+    from odmo_cli.formats.bvh import BvhOptions, export_samples
 
     report = export_samples(samples, bvh, BvhOptions(units, floor, helpers))
     if as_json:
@@ -141,13 +143,13 @@ def export_cmd(
     _bvh_note(report, bvh)
 
 
-@app.command("render")
+@app.command("render", cls=Command)
 def render_cmd(
     samples: Annotated[Path, typer.Argument(help="A samples file (.npz).")],
     out: Annotated[Path, typer.Option("--out", help="Animation to write: .gif or .mp4 (.png: one still).")],
     index: Annotated[Optional[int], typer.Option("--index", help="Render only this motion (default 0).")] = None,
     grid: Annotated[Optional[str], typer.Option("--grid", help="ROWSxCOLS of the first motions, e.g. 4x5.")] = None,
-    trail: Annotated[bool, typer.Option("--trail", help="Draw the paths of the root, hands and feet so far.")] = False,
+    trail: Annotated[bool, typer.Option("--trail", help="Draw the paths of the root, hands and feet so far.", metavar="")] = False,
     size: Annotated[Optional[str], typer.Option("--size", help="Output size WIDTHxHEIGHT in pixels, e.g. 640x480.")] = None,
     frame: Annotated[Optional[int], typer.Option("--frame", help="For a .png still: the frame to draw (default: the middle one).")] = None,
     compare: Annotated[Optional[str], typer.Option("--compare", help="real: real clips of the same actions under the generated ones (needs the data).")] = None,
@@ -162,7 +164,7 @@ def render_cmd(
     console.print(f"wrote {written}", highlight=False)
 
 
-@app.command("complete")
+@app.command("complete", cls=Command)
 def complete_cmd(
     prefix: Annotated[Path, typer.Option("--prefix", help="A (frames, joints, 3) .npy motion of the model's skeleton.")],
     model: Annotated[str, typer.Option("--model", help="A DVGAN-RNN checkpoint (the models that complete).")],
@@ -173,7 +175,8 @@ def complete_cmd(
     seed: SeedOpt = 0, as_json: JsonOpt = False,
 ):
     """Continue the first --frames frames of a motion to the model's length (DVGAN-RNN)."""
-    from odmo_cli.generate import complete, load_model, read_prefix
+    from odmo_cli.checkpoint import load_model
+    from odmo_cli.generation.generate import complete, read_prefix
 
     batch = complete(load_model(model), read_prefix(prefix), frames, action, n, seed)
     batch.save(out)
@@ -187,39 +190,41 @@ def _floats(text: str, flag: str) -> list[float]:
         raise UserError(f"{flag} must be comma-separated numbers, got {text!r}") from None
 
 
-@app.command("interpolate")
+@app.command("interpolate", cls=Command)
 def interpolate_cmd(
-    action: Annotated[str, typer.Option("--action", help="Action name.")],
-    from_mode: Annotated[Optional[int], typer.Option("--from-mode")] = None,
-    to_mode: Annotated[Optional[int], typer.Option("--to-mode")] = None,
-    from_code: Annotated[Optional[int], typer.Option("--from-code", help="Index into the latent bank.")] = None,
-    to_code: Annotated[Optional[int], typer.Option("--to-code", help="Index into the latent bank.")] = None,
-    steps: Annotated[int, typer.Option("--steps")] = 8,
+    action: Annotated[str, typer.Option("--action", help="Action name (see `odmo modes`).")],
+    from_mode: Annotated[Optional[int], typer.Option("--from-mode", help="Start at this discovered mode's mean (default: mode 0).")] = None,
+    to_mode: Annotated[Optional[int], typer.Option("--to-mode", help="End at this discovered mode's mean (default: mode 1).")] = None,
+    from_code: Annotated[Optional[int], typer.Option("--from-code", help="Start at this latent-bank code (an index; instead of --from-mode).")] = None,
+    to_code: Annotated[Optional[int], typer.Option("--to-code", help="End at this latent-bank code (an index; instead of --to-mode).")] = None,
+    steps: Annotated[int, typer.Option("--steps", help="Motions on the line between the two ends, both included.")] = 8,
     end: EndOpt = None, out: OutOpt = Path("interpolation.npz"), model: ModelOpt = None, up: UpOpt = "dataset",
     seed: SeedOpt = 0, as_json: JsonOpt = False,
 ):
-    """Blend two modes (or two codes) of an action: one motion per step on the line between them."""
-    from odmo_cli.generate import interpolate, load_odmo
+    """Blend two modes (or two codes) of an action: one motion per step on the line between them.
+    Without --from/--to: the action's first two modes (an action with one mode: its first and last codes)."""
+    from odmo_cli.checkpoint import load_odmo
+    from odmo_cli.generation.generate import interpolate
 
     batch = interpolate(load_odmo(model), action, steps, from_mode, to_mode, from_code, to_code, end, seed)
     batch.save(out, up)
     _summary(batch, out, as_json)
 
 
-@app.command("modes")
+@app.command("modes", cls=Command)
 def modes_cmd(
-    model: Annotated[Optional[str], typer.Argument(help="Checkpoint path or shipped name (default humanact12).")] = None,
-    refit: Annotated[bool, typer.Option("--refit", help="Refit the mixtures and save them into the checkpoint.")] = False,
+    model: ModelOpt = None,
+    refit: Annotated[bool, typer.Option("--refit", help="Refit the mixtures and save them into the checkpoint.", metavar="")] = False,
     plot: Annotated[Optional[Path], typer.Option("--plot", help="Write a 2-D plot of the codes (.png).")] = None,
-    projection: Annotated[str, typer.Option("--projection", help="pca | tsne")] = "pca",
-    colour: Annotated[str, typer.Option("--colour", help="action | mode")] = "action",
+    projection: Annotated[str, typer.Option("--projection", help="The plot's 2-D projection: pca or tsne.")] = "pca",
+    colour: Annotated[str, typer.Option("--colour", help="Colour the plot's points by action or by mode.")] = "action",
     action: Annotated[Optional[str], typer.Option("--action", help="Plot only this action.")] = None,
-    seed: SeedOpt = 0, as_json: JsonOpt = False,
+    seed: SeedOpt = 0, as_json: JsonOpt = False, wide: WideOpt = False,
 ):
     """Discovered modes per action: counts, silhouettes, agreement with ground-truth modes."""
+    from odmo_cli.checkpoint import load_odmo
+    from odmo_cli.generation.generate import refit_modes
     from odmo_cli.latent import mode_report
-
-    from odmo_cli.generate import load_odmo, refit_modes
 
     if colour not in ("action", "mode"):
         raise UserError(f"unknown --colour {colour!r}; valid: action, mode")
@@ -231,15 +236,19 @@ def modes_cmd(
         _plot_modes(loaded, plot, projection, colour, action, seed)
     if as_json:
         return print_json({"model": loaded.source, "actions": rows, "plot": str(plot) if plot else None})
-    table = Table(title=f"modes of {loaded.source}")
-    for col in ("action", "clips", "modes", "members", "silhouette by k", "true modes", "ARI"):
-        table.add_column(col)
+    table = Table(title=f"modes of {Path(loaded.source).name}")
+    columns = ["action", "clips", "modes", "members", "true modes", "ARI"] + (["silhouette by k"] if wide else [])
+    for col in columns:
+        table.add_column(col, no_wrap=col == "action", justify="left" if col in ("action", "members") else "right")
     for r in rows:
-        sil = " ".join(f"{k}:{v:.2f}" for k, v in r["silhouettes"].items()) or r["note"]
-        table.add_row(r["action"], str(r["clips"]), str(r["modes"]), " ".join(map(str, r["members"])), sil,
-                      "-" if r["true_modes"] is None else str(r["true_modes"]),
-                      "-" if r["ari"] is None else f"{r['ari']:.2f}")
+        cells = [r["action"], str(r["clips"]), str(r["modes"]), " ".join(map(str, r["members"])),
+                 "-" if r["true_modes"] is None else str(r["true_modes"]), "-" if r["ari"] is None else f"{r['ari']:.2f}"]
+        if wide:
+            cells.append(" ".join(f"{k}:{v:.2f}" for k, v in r["silhouettes"].items()) or r["note"])
+        table.add_row(*cells)
     console.print(table)
+    if not wide:
+        console.print("silhouettes by k: --wide or --json", style="dim")
     if plot is not None:
         console.print(f"wrote {plot}")
 
@@ -247,7 +256,7 @@ def modes_cmd(
 def _plot_modes(loaded, plot: Path, projection: str, colour: str, action: Optional[str], seed: int) -> None:
     import numpy as np
 
-    from odmo_cli.latent import ActionModes, assign
+    from odmo_cli.latent import assign
     from odmo_cli.viz import latent_plot
 
     codes, labels = loaded.bank["codes"].numpy(), loaded.bank["labels"].numpy()
@@ -257,7 +266,7 @@ def _plot_modes(loaded, plot: Path, projection: str, colour: str, action: Option
     if colour == "action":
         groups, names = labels, loaded.actions
     for a in chosen:
-        m = ActionModes.from_plain(loaded.modes["actions"][a])
+        m = loaded.action_modes(a)
         gaussians += list(zip(m.means, m.covariances))
         if colour == "mode":
             own = labels == a

@@ -1,6 +1,6 @@
 """Import a folder of BVH files as a motion folder (`odmo data prepare DIR --format bvh`).
 
-Each file is read and forward-kinematics'd (`odmo_cli.bvh.read_bvh`), its joints are picked by a
+Each file is read and forward-kinematics'd (`odmo_cli.formats.bvh.read_bvh`), its joints are picked by a
 joint map (target joint -> source joint names, the first one present wins), turned to the target
 dataset's up axis (proper rotation, so left stays left) and units, and resampled to its fps.
 Bad files are listed with the reason and skipped; only "nothing readable" is an error.
@@ -23,12 +23,12 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
-from odmo_cli.bvh import read_bvh
+from odmo_cli.formats.bvh import read_bvh
 from odmo_cli.data.manifest import Action, Manifest, load_manifest, normalize_action
 from odmo_cli.data.readers import ClipSet
 from odmo_cli.errors import UserError
-from odmo_cli.lie import rotation_between, so3_exp
-from odmo_cli.skeletons import SKELETONS, Skeleton, get_skeleton
+from odmo_cli.geometry.lie import rotation_between, so3_exp
+from odmo_cli.geometry.skeletons import SKELETONS, Skeleton, get_skeleton
 
 
 def _sides(template: dict[str, str], left: str, right: str) -> dict[str, list[str]]:

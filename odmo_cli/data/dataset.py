@@ -1,4 +1,4 @@
-"""The torch Dataset over a ClipSet, with the supplement §4 clip rules, and its samplers.
+"""The torch Dataset over a ClipSet, with the supplement §4 clip rules, its samplers and the split.
 
 Every clip is cropped to the dataset's length T at a random start, padded with its last frame
 when shorter, then shifted so that the first frame's root is at the origin. Randomness comes
@@ -6,8 +6,6 @@ only from the generators passed in, so a seed fixes every crop and every pair.
 """
 
 from __future__ import annotations
-
-from typing import Iterator
 
 import numpy as np
 import torch
@@ -87,14 +85,6 @@ def pair_indices(labels: np.ndarray, n: int, rng: np.random.Generator,
     return np.stack([first, second], axis=1)
 
 
-def pair_batches(labels: np.ndarray, pairs_per_epoch: int, batch_size: int, rng: np.random.Generator,
-                 same_fraction: float | None = None) -> Iterator[np.ndarray]:
-    """An epoch of pair batches, each (B, 2)."""
-    pairs = pair_indices(labels, pairs_per_epoch, rng, same_fraction)
-    for start in range(0, pairs_per_epoch, batch_size):
-        yield pairs[start:start + batch_size]
-
-
 def split_indices(clips: ClipSet, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """A fixed, seeded, per-class split -> (train, validation) indices.
 
@@ -113,3 +103,9 @@ def split_indices(clips: ClipSet, val_fraction: float, seed: int) -> tuple[np.nd
         val.extend(idx[:n_val])
         train.extend(idx[n_val:])
     return np.sort(np.array(train, dtype=np.int64)), np.sort(np.array(val, dtype=np.int64))
+
+
+def crops_from_start(clips: ClipSet, idx: np.ndarray, length: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The first `length` frames of each clip (padded, root at origin): the canonical crop.
+    Returns (B, length, J, 3) motions and (B,) labels."""
+    return MotionDataset(clips, length, random_crop=False).batch(idx)

@@ -1,4 +1,5 @@
-"""Dataset manifests: one TOML per dataset in `odmo_cli/manifests/`, plus file checksums.
+"""Dataset manifests: one TOML per dataset in `data_manifests/` (the repository's top level; inside the
+installed package as `odmo_cli/data_manifests/`), plus file checksums.
 
 A manifest names the dataset's source, licence, skeleton, frame, clip length and actions. The
 companion `<name>.sha256` lists `sha256  relative/path` for every released file; the dataset
@@ -20,7 +21,7 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 from odmo_cli.errors import UserError
-from odmo_cli.skeletons import Skeleton, get_skeleton
+from odmo_cli.geometry.skeletons import Skeleton, get_skeleton
 
 FORMATS = ("humanact12", "cmu_a2m", "folder")
 
@@ -93,7 +94,12 @@ def normalize_action(name: str) -> str:
 
 
 def manifest_dir() -> Path:
-    return Path(str(resources.files("odmo_cli") / "manifests"))
+    """The manifests: inside the installed package (a wheel maps the repository's data_manifests/ to
+    odmo_cli/data_manifests/), else beside the package in its checkout (an editable install, a clone)."""
+    installed = Path(str(resources.files("odmo_cli"))) / "data_manifests"
+    if installed.is_dir():
+        return installed
+    return Path(__file__).resolve().parents[2] / "data_manifests"
 
 
 # Short names users may type for a dataset; the manifest's own name is the canonical one.

@@ -2,7 +2,7 @@
 after the manifest's scale, float32, one (T_i, J, 3) array per clip.
 
 Formats: the HumanAct12 release (file names carry the labels), the CMU MoCap release of
-Action2Motion (`pose_clip.csv` + `mocap_3djoints/`), and the motion folder of DESIGN.md
+Action2Motion (`pose_clip.csv` + `mocap_3djoints/`), and the motion folder of docs/formats.md
 (`index.csv` + one npy per row), which is also ODMO's UESTC layout.
 """
 

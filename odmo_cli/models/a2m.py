@@ -9,7 +9,7 @@ Sampling draws z_t from the prior and feeds each generated pose back in.
 
 The pose vector p_t has D = 3J numbers in both representations (Table 3: 72 for HumanAct12):
   * xyz: the J joint positions ("ours w/o Lie").
-  * lie: root translation (3) and the so(3) parameters of the J-1 bones (`odmo_cli.lie`). The
+  * lie: root translation (3) and the so(3) parameters of the J-1 bones (`odmo_cli.geometry.lie`). The
     body orientation is folded into the bones leaving the root, so the root frame is the
     identity, as in the paper's 3 + 69 numbers. Positions come from forward kinematics (eq. 4)
     with the clip's own bone lengths when training and, when sampling, one of a small bank of
@@ -18,16 +18,17 @@ The pose vector p_t has D = 3J numbers in both representations (Table 3: 72 for 
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from odmo_cli.config import Config
 from odmo_cli.errors import UserError
-from odmo_cli.lie import (bone_lengths_from_pose, forward_kinematics, inverse_kinematics, rest_directions,
+from odmo_cli.geometry.lie import (bone_lengths_from_pose, forward_kinematics, inverse_kinematics, rest_directions,
                           so3_exp, so3_log)
-from odmo_cli.skeletons import get_skeleton
+from odmo_cli.geometry.skeletons import get_skeleton
 
 REPRESENTATIONS = ("xyz", "lie")
 PAPER_LAMBDA_KL = {"humanact12": 0.01}  # A.2; CMU MoCap and NTU use 0.1
@@ -38,7 +39,7 @@ def paper_lambda_kl(dataset: str) -> float:
 
 
 @dataclass
-class A2MConfig:
+class A2MConfig(Config):
     n_joints: int = 24
     n_classes: int = 12
     length: int = 60  # T (A.2: 60 HumanAct12 and NTU, 100 CMU)
@@ -60,13 +61,7 @@ class A2MConfig:
     def pose_dim(self) -> int:
         return 3 * self.n_joints
 
-    def to_dict(self) -> dict:
-        return asdict(self)
 
-    @classmethod
-    def from_dict(cls, d: dict) -> "A2MConfig":
-        known = {f.name for f in fields(cls)}
-        return cls(**{k: v for k, v in d.items() if k in known})
 
 
 class GaussianGRU(nn.Module):

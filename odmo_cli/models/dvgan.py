@@ -12,12 +12,13 @@ Shapes: B batch, T frames (the dataset's clip length), F = J*3, K hidden size, C
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from odmo_cli.config import Config
 from odmo_cli.errors import UserError
 
 GENERATORS = ("cnn", "rnn")
@@ -29,7 +30,7 @@ def action_words(action: str) -> list[str]:
 
 
 @dataclass
-class DVGANConfig:
+class DVGANConfig(Config):
     n_joints: int = 24
     length: int = 60  # T, the output length; the generators make a 2T tape (final cut)
     actions: tuple[str, ...] = ()
@@ -54,15 +55,7 @@ class DVGANConfig:
         if self.length < 2 or self.n_joints < 1:
             raise UserError(f"DVGAN needs at least 2 frames and 1 joint, got {self.length} and {self.n_joints}")
 
-    @classmethod
-    def from_dict(cls, d: dict) -> "DVGANConfig":
-        known = {f.name for f in fields(cls)}
-        return cls(**{k: v for k, v in d.items() if k in known})
 
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["actions"], d["vocab"] = list(self.actions), list(self.vocab)  # plain lists in checkpoints
-        return d
 
     @property
     def n_features(self) -> int:
@@ -309,7 +302,7 @@ class DVGAN(nn.Module):
         are the prefix exactly, the rest continue it (RNN generator only)."""
         if self.cfg.generator != "rnn":
             raise UserError("motion completion needs a DVGAN-RNN model; this one has the CNN generator "
-                            "(train one with: odmo train --model dvgan --generator rnn)")
+                            "(train one with: odmo train dvgan --generator rnn)")
         n = prefix.shape[1]
         x = self.generator(self.g_text(labels), generator, steps=self.cfg.length, prefix=self.normalize(prefix))
         motion = self.denormalize(x)

@@ -13,7 +13,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from odmo_cli.kinematics import root_velocities
+from odmo_cli.geometry.kinematics import root_velocities
 
 
 def contrastive(mu1: torch.Tensor, mu2: torch.Tensor, same: torch.Tensor, alpha: float,

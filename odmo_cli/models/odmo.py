@@ -6,15 +6,17 @@ Shapes: B batch, T frames, J joints, D latent size, C classes; a pose is flatten
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from odmo_cli.config import Config
+
 
 @dataclass
-class ODMOConfig:
+class ODMOConfig(Config):
     n_joints: int = 24
     n_classes: int = 12
     length: int = 60  # T
@@ -49,13 +51,7 @@ class ODMOConfig:
     # decoder that hedges between phases with a slow, small average motion; this term does not.
     energy_weight: float = 0.0
 
-    @classmethod
-    def from_dict(cls, d: dict) -> "ODMOConfig":
-        known = {f.name for f in fields(cls)}
-        return cls(**{k: v for k, v in d.items() if k in known})
 
-    def to_dict(self) -> dict:
-        return asdict(self)
 
     def __post_init__(self):
         if self.traj_loss not in ("position", "velocity"):

@@ -46,9 +46,10 @@ from pybvh.rotations import rotmat_to_euler
 
 from odmo_cli.errors import UserError
 from odmo_cli.io import atomic_path
-from odmo_cli.kinematics import check_motion
-from odmo_cli.lie import body_frame, joint_side, rest_directions, rotation_between, so3_exp
-from odmo_cli.skeletons import Skeleton
+from odmo_cli.geometry.kinematics import check_motion
+from odmo_cli.geometry.lie import body_frame, joint_side, rest_directions, rotation_between, so3_exp
+from odmo_cli.geometry.skeletons import Skeleton, get_skeleton
+from odmo_cli.formats.samples import read_samples
 
 EULER_ORDER = "ZYX"
 
@@ -373,8 +374,5 @@ def export_motions(motions: np.ndarray, actions, skeleton: Skeleton, fps: float,
 
 def export_samples(samples: str | Path, out_dir: str | Path, options: BvhOptions = BvhOptions()) -> ExportReport:
     """`odmo export samples.npz --bvh DIR`: every motion of a samples file as BVH."""
-    from odmo_cli.io import read_samples
-    from odmo_cli.skeletons import get_skeleton
-
     f = read_samples(samples)
     return export_motions(f["motions"], f["actions"], get_skeleton(f["skeleton"]), f["fps"], out_dir, options)

@@ -45,8 +45,8 @@ import numpy as np
 import torch
 
 from odmo_cli.errors import UserError
-from odmo_cli.kinematics import check_motion
-from odmo_cli.skeletons import Skeleton, get_skeleton
+from odmo_cli.geometry.kinematics import check_motion
+from odmo_cli.geometry.skeletons import Skeleton, get_skeleton
 
 __all__ = [
     "hat", "vee", "so3_exp", "so3_log", "rotation_between",

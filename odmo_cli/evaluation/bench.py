@@ -1,6 +1,8 @@
 """`odmo bench`: speed and memory on this machine, each figure the median of several runs.
 
-Figures: sampling throughput (motions/s for n = 1000 after load), model load time, end-to-end
+Figures: sampling throughput (motions/s for n = 1000 after load), what `odmo sample --action all`
+does after load beside the authors' bare networks making as many motions in the same run
+(../shared/peer/bench_peer.py, when present), model load time, end-to-end
 `odmo sample --n 20` wall time (a fresh process), peak RSS of `odmo sample --n 10000`, training
 s/epoch and clips/s on HumanAct12 and CMU MoCap with the arithmetic they imply (GFLOP per clip,
 GFLOP/s) beside this machine's float32 matrix-multiply rate, and the evaluation protocol's wall time.
@@ -10,6 +12,7 @@ shapes (speed does not depend on the weights) and say so.
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import statistics
@@ -23,6 +26,8 @@ from typing import Callable
 
 import numpy as np
 import torch
+
+from odmo_cli.errors import UserError
 
 
 @dataclass
@@ -63,7 +68,7 @@ def _timed(fn: Callable[[], object], runs: int, warmup: int = 1) -> list[float]:
 def random_checkpoint(dataset: str, folder: Path) -> Path:
     """An untrained ODMO checkpoint with the dataset's shapes and a random latent bank."""
     from odmo_cli.data.manifest import load_manifest
-    from odmo_cli.io import save_checkpoint
+    from odmo_cli.checkpoint import save_checkpoint
     from odmo_cli.latent import fit_modes
     from odmo_cli.models.odmo import ODMO, ODMOConfig
 
@@ -87,7 +92,8 @@ def random_checkpoint(dataset: str, folder: Path) -> Path:
 
 
 def bench_sampling(model_path: Path, runs: int, note: str) -> list[Figure]:
-    from odmo_cli.generate import load_odmo, sample
+    from odmo_cli.checkpoint import load_odmo
+    from odmo_cli.generation.generate import sample
 
     loads = _timed(lambda: load_odmo(model_path), runs)
     loaded = load_odmo(model_path)
@@ -99,13 +105,72 @@ def bench_sampling(model_path: Path, runs: int, note: str) -> list[Figure]:
                    [n / t for t in times], note)]
 
 
+PEER_SHAPES = {"humanact12": "humanact12", "cmu_mocap": "cmu"}  # bench_peer.py --dataset, by our dataset
+
+
+def find_peer() -> Path | None:
+    """The authors' networks' timer (shared/peer/bench_peer.py beside the repository), if present."""
+    for root in (Path.cwd().parent, Path(__file__).resolve().parents[3]):
+        path = root / "shared" / "peer" / "bench_peer.py"
+        if path.is_file():
+            return path
+    return None
+
+
+def peer_sampling_rate(peer: Path, n: int, dataset: str) -> float:
+    """Motions/s of the authors' bare networks for n motions (one timed run after a warm-up), with
+    this process's thread count; UserError if the script fails."""
+    cmd = [sys.executable, str(peer), "--what", "sampling", "--n", str(n), "--runs", "1",
+           "--threads", str(torch.get_num_threads()), "--dataset", PEER_SHAPES[dataset]]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    try:
+        return float(json.loads(proc.stdout.strip().splitlines()[-1])["motions_per_s"])
+    except (IndexError, KeyError, ValueError):
+        last = (proc.stderr.strip().splitlines() or ["no output"])[-1]
+        raise UserError(f"{peer} did not report a sampling rate (exit {proc.returncode}: {last})") from None
+
+
+def bench_sample_command(model_path: Path, runs: int, note: str, folder: Path, peer: Path | None) -> list[Figure]:
+    """What `odmo sample --action all --n N` does after loading (codes, end points, the networks,
+    the file), N per action making at least 1000 motions; with `peer`, the authors' bare networks
+    making as many motions, timed in the same run, interleaved run by run with ours."""
+    from odmo_cli.checkpoint import load_model
+    from odmo_cli.generation.generate import sample
+
+    loaded = load_model(model_path)
+    per = -(-1000 // len(loaded.actions))
+    n = per * len(loaded.actions)
+    out = folder / "all.npz"
+
+    def ours() -> None:
+        sample(loaded, ["all"], per, seed=0, lazy=True).save(out, "dataset", loaded)
+
+    use_peer = peer is not None and loaded.dataset["name"] in PEER_SHAPES
+    ours()
+    mine, theirs = [], []
+    for _ in range(runs):
+        if use_peer:
+            theirs.append(peer_sampling_rate(peer, n, loaded.dataset["name"]))
+        start = time.perf_counter()
+        ours()
+        mine.append(n / (time.perf_counter() - start))
+    figures = [Figure(f"`odmo sample --action all --n {per}` after load: codes, end points, networks, file",
+                      "motions/s", mine, note)]
+    if theirs:
+        figures += [Figure(f"the authors' networks alone, {n} motions (bench_peer.py, same run)", "motions/s", theirs,
+                           f"{peer}"),
+                    Figure("`odmo sample` over the authors' networks", "x", [a / b for a, b in zip(mine, theirs)],
+                           "run by run; >= 1: odmo delivers more motions per second")]
+    return figures
+
+
 def _cli(args: list[str]) -> list[str]:
     return [sys.executable, "-m", "odmo_cli", *args]
 
 
 def bench_end_to_end(model_path: Path, runs: int, note: str, folder: Path) -> list[Figure]:
     action = "--action"
-    from odmo_cli.generate import load_odmo
+    from odmo_cli.checkpoint import load_odmo
 
     first = load_odmo(model_path).actions[0]
     cmd = _cli(["sample", "--model", str(model_path), action, first, "--n", "20", "--out", str(folder / "e2e.npz")])
@@ -168,36 +233,39 @@ def matmul_rate(runs: int, n: int = 2048) -> list[float]:
 def bench_training(dataset: str, data, runs: int) -> list[Figure]:
     from odmo_cli.data.locate import resolve
     from odmo_cli.data.readers import read_dataset
-    from odmo_cli.train import TrainConfig, Trainer, model_config_for
+    from odmo_cli.training.odmo import ODMOTrainer, TrainConfig, model_config_for
 
     manifest, root = resolve(dataset, data)
     clips = read_dataset(root, manifest)
     tc = TrainConfig(epochs=runs + 1, batch_size=256, val_every=0, checkpoint_every=0, tf_start=0.65, tf_end=0.65)
     with tempfile.TemporaryDirectory() as tmp:
-        trainer = Trainer(clips, model_config_for(clips), tc, Path(tmp) / "bench.pt")
+        trainer = ODMOTrainer(clips, model_config_for(clips), tc, Path(tmp) / "bench.pt")
         flops = count_flops(trainer.train_epoch, trainer.model)  # the warm-up epoch, not timed
-        logs = [trainer.train_epoch() for _ in range(runs)]
+        seconds, rates = [], []
+        for _ in range(runs):
+            start = time.perf_counter()
+            clips_seen = trainer.train_epoch()["clips"]
+            seconds.append(time.perf_counter() - start)
+            rates.append(clips_seen / seconds[-1])
     note = f"{len(trainer.train_idx)} pairs per epoch, batch 256 pairs, teacher forcing 0.65 (mid-schedule)"
     per_clip = flops / (2 * len(trainer.train_idx)) / 1e9
-    return [Figure(f"training s/epoch, {dataset} (T = {manifest.clip_length})", "s", [g.seconds for g in logs], note),
-            Figure(f"training clips/s, {dataset}", "clips/s", [g.clips_per_s for g in logs], note),
+    return [Figure(f"training s/epoch, {dataset} (T = {manifest.clip_length})", "s", seconds, note),
+            Figure(f"training clips/s, {dataset}", "clips/s", rates, note),
             Figure(f"training GFLOP per clip (forward + backward), {dataset}", "GFLOP", [per_clip],
                    "matrix products counted in one epoch"),
-            Figure(f"training arithmetic rate, {dataset}", "GFLOP/s", [flops / g.seconds / 1e9 for g in logs], note)]
+            Figure(f"training arithmetic rate, {dataset}", "GFLOP/s", [flops / t / 1e9 for t in seconds], note)]
 
 
 def bench_evaluation(model: str | None, data, runs: int) -> list[Figure]:
-    from odmo_cli.evaluate import EvalConfig, run_evaluation
+    from odmo_cli.evaluation.protocol import EvalConfig, run_evaluation
 
     times = _timed(lambda: run_evaluation([model], None, data, None, EvalConfig()), runs, warmup=0)
     return [Figure("evaluation protocol (10 repeats, paper's samples per action)", "s", times)]
 
 
 def run_bench(model: str | None = None, data=None, runs: int = 5, only: tuple[str, ...] = (),
-              progress: Callable[[str], None] | None = None) -> BenchReport:
-    from odmo_cli.errors import UserError
-    from odmo_cli.generate import checkpoint_path
-    from odmo_cli.ship import shipped_file
+              progress: Callable[[str], None] | None = None, peer: Path | None = None) -> BenchReport:
+    from odmo_cli.checkpoint import checkpoint_path, shipped_file
 
     report = BenchReport(machine())
     want = lambda part: not only or part in only  # noqa: E731
@@ -214,6 +282,13 @@ def run_bench(model: str | None = None, data=None, runs: int = 5, only: tuple[st
         if want("sampling"):
             say("sampling")
             report.figures += bench_sampling(path, runs, note)
+            peer = peer or find_peer()
+            if peer is None:
+                report.skipped.append("the authors' networks: no shared/peer/bench_peer.py beside the repository (--peer)")
+            try:
+                report.figures += bench_sample_command(path, runs, note, folder, peer)
+            except UserError as exc:
+                report.skipped.append(f"the authors' networks: {exc}")
         if want("end-to-end"):
             say("end to end")
             report.figures += bench_end_to_end(path, runs, note, folder)

@@ -23,13 +23,22 @@ import numpy as np
 import torch
 
 from odmo_cli import metrics
+from odmo_cli.checkpoint import SAMPLING, LoadedODMO, load_model, shipped_file
 from odmo_cli.data.dataset import crop_pad_shift, random_start
-from odmo_cli.data.readers import ClipSet
+from odmo_cli.data.locate import resolve
+from odmo_cli.data.manifest import available_manifests, load_manifest
+from odmo_cli.data.readers import ClipSet, read_dataset
 from odmo_cli.errors import UserError
-from odmo_cli.ship import shipped_file
+from odmo_cli.evaluation.classifier import check_matches, load_classifier
+from odmo_cli.formats.samples import read_samples
+from odmo_cli.generation.batch import decode
+from odmo_cli.generation.generate import sample
+from odmo_cli.geometry.skeletons import get_skeleton
+from odmo_cli.latent import sample_codes
+from odmo_cli.parallel import default_workers, parallel_map
 
 DEFAULT_PER_ACTION = {"cmu_mocap": 400, "humanact12": 250, "uestc": 200}
-METRICS = ("accuracy", "fid", "diversity", "multimodality", "inception", "n_apd", "bone_std")
+APD_CAP = 250  # motions per action that n-APD compares (the first ones of each set)
 
 
 @dataclass
@@ -38,6 +47,7 @@ class EvalConfig:
     per_action: int = 0  # 0: the paper's number for the dataset (250 HumanAct12, 400 CMU, 200 UESTC)
     sampling: str = "mode-preserving"
     seed: int = 0
+    workers: int = 0  # sets evaluated side by side (0: one per core, at most 4); the numbers do not depend on it
 
     def n_for(self, dataset: str) -> int:
         return self.per_action or DEFAULT_PER_ACTION.get(dataset, 200)
@@ -45,6 +55,10 @@ class EvalConfig:
     def __post_init__(self):
         if self.repeats <= 0 or self.per_action < 0:
             raise UserError(f"--repeats must be positive and --per-action non-negative, got {self.repeats}, {self.per_action}")
+
+    @property
+    def n_workers(self) -> int:
+        return self.workers or default_workers()
 
 
 @dataclass
@@ -54,14 +68,14 @@ class RealSets:
     features: list[np.ndarray]  # repeats + 1 sets of (C*N, 30)
     labels: np.ndarray  # (C*N,)
     logits: list[np.ndarray]
-    apd: np.ndarray  # (C,) per-action APD of the first real set
+    apd: dict  # {action: APD} of the first real set (metrics.class_apd)
     bone_std: list[float]
     speed: list[np.ndarray]  # repeats + 1 sets of (C*N,) body speeds (metrics.body_speed)
     amplitude: list[np.ndarray]  # the same for metrics.body_amplitude
 
 
 def shipped_classifier(dataset: str) -> Path | None:
-    return shipped_file(dataset, "classifier_file")
+    return shipped_file(dataset, "classifier")
 
 
 def real_crops(clips: ClipSet, per_action: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -94,41 +108,38 @@ def held_out_clips(classifier, clips: ClipSet) -> np.ndarray:
     return val
 
 
-def evaluate_held_out(clips: ClipSet, val: np.ndarray, classifier, real: RealSets, cfg: EvalConfig) -> dict:
-    """The protocol for crops of the classifier's held-out real clips, against the shared real sets."""
-    rng = np.random.default_rng(cfg.seed + 40_000)
-    held = replace(clips, motions=[clips.motions[i] for i in val], labels=clips.labels[val])
-    n, parents = cfg.n_for(clips.manifest.name), clips.manifest.skeleton.parents
-    rows = []
-    for r in range(cfg.repeats):
-        motions, labels = real_crops(held, n, rng)  # (C*n, T, J, 3)
-        logits, feats = classifier.predict(motions)
-        rows.append(set_metrics(logits, feats, labels, real.features[r + 1], motions, parents, real.apd, rng,
-                                real=real))
-    return {"name": "Real, classifier's held-out clips", "metrics": summarize(rows), "per_repeat": rows,
-            "clips": int(len(val))}
+# -- one set of motions ----------------------------------------------------------------------------
+
+@dataclass
+class SetStats:
+    """What the metrics need of one set of motions: the classifier's outputs and the statistics of
+    the motions themselves (computed where the motions are, so the motions need not be kept)."""
+
+    logits: np.ndarray  # (N, C)
+    features: np.ndarray  # (N, 30)
+    labels: np.ndarray  # (N,)
+    bone_std: float
+    speed: np.ndarray  # (N,)
+    amplitude: np.ndarray  # (N,)
+    apd: dict  # {action: APD} for the actions with at least 2 motions
 
 
-def _apd_per_action(motions: np.ndarray, labels: np.ndarray, n_classes: int, cap: int = 250) -> np.ndarray:
-    return np.array([metrics.apd(motions[labels == c][:cap]) for c in range(n_classes)])
+def set_stats(motions: np.ndarray, labels: np.ndarray, classifier, parents) -> SetStats:
+    logits, feats = classifier.predict(motions)
+    m64 = motions.astype(np.float64)  # once, for every statistic below
+    speed, amplitude = metrics.body_speed_and_amplitude(m64)
+    return SetStats(logits, feats, labels, metrics.bone_length_consistency(m64, parents), speed, amplitude,
+                    metrics.class_apd(m64, labels, cap=APD_CAP))
 
 
 def real_sets(clips: ClipSet, classifier, cfg: EvalConfig) -> RealSets:
     rng = np.random.default_rng(cfg.seed + 10_000)
     n = cfg.n_for(clips.manifest.name)
     parents = clips.manifest.skeleton.parents
-    feats, logits, bone, apd, labels, speed, amplitude = [], [], [], None, None, [], []
-    for r in range(cfg.repeats + 1):
-        motions, labels = real_crops(clips, n, rng)
-        lo, fe = classifier.predict(motions)
-        feats.append(fe)
-        logits.append(lo)
-        bone.append(metrics.bone_length_consistency(motions, parents))
-        speed.append(metrics.body_speed(motions))
-        amplitude.append(metrics.body_amplitude(motions))
-        if r == 0:
-            apd = _apd_per_action(motions, labels, len(clips.manifest.actions))
-    return RealSets(feats, labels, logits, apd, bone, speed, amplitude)
+    crops = [real_crops(clips, n, rng) for _ in range(cfg.repeats + 1)]  # drawn in order from one rng
+    stats = list(parallel_map(lambda c: set_stats(*c, classifier, parents), crops, cfg.n_workers))
+    return RealSets([s.features for s in stats], crops[0][1], [s.logits for s in stats], stats[0].apd,
+                    [s.bone_std for s in stats], [s.speed for s in stats], [s.amplitude for s in stats])
 
 
 def damping_metrics(speed: np.ndarray, amplitude: np.ndarray, labels: np.ndarray, real: RealSets) -> dict[str, float]:
@@ -144,29 +155,50 @@ def damping_metrics(speed: np.ndarray, amplitude: np.ndarray, labels: np.ndarray
     return out
 
 
-def set_metrics(logits: np.ndarray, feats: np.ndarray, labels: np.ndarray, real_feats: np.ndarray,
-                motions: np.ndarray | None, parents, real_apd: np.ndarray, rng: np.random.Generator,
-                bone_std: float | None = None, real: RealSets | None = None) -> dict[str, float]:
-    pred = logits.argmax(axis=1)  # (N,)
+def set_metrics(s: SetStats, real_feats: np.ndarray, rng: np.random.Generator, real: RealSets,
+                generated: bool = True) -> dict[str, float]:
+    """Every metric of one set against the real sets; `rng` draws the Diversity and Multimodality pairs.
+    An action with too few motions for a per-action figure leaves its key out (see not_available)."""
+    pred = s.logits.argmax(axis=1)  # (N,)
+    pairs = len(s.labels) >= 2  # FID and Diversity need two motions
     out = {
-        "accuracy": 100 * metrics.accuracy(pred, labels),
-        "fid": metrics.fid_from_features(real_feats, feats),
-        "diversity": metrics.diversity(feats, 200, rng=rng),
-        "multimodality": metrics.multimodality(feats, labels, 20, rng=rng),
-        "inception": metrics.inception_score(_softmax(logits)),
+        "accuracy": 100 * metrics.accuracy(pred, s.labels),
+        "fid": metrics.fid_from_features(real_feats, s.features) if pairs else float("nan"),
+        "diversity": metrics.diversity(s.features, 200, rng=rng) if pairs else float("nan"),
+        "multimodality": _multimodality(s.features, s.labels, rng),
+        "inception": metrics.inception_score(_softmax(s.logits)),
     }
-    per_class = metrics.accuracy_per_class(pred, labels, len(real_apd))  # (C,), NaN where absent
+    per_class = metrics.accuracy_per_class(pred, s.labels, int(real.labels.max()) + 1)  # (C,), NaN where absent
     out.update({f"accuracy/{c}": 100 * float(v) for c, v in enumerate(per_class) if np.isfinite(v)})
-    if motions is not None:
-        gen_apd = _apd_per_action(motions, labels, len(real_apd))
-        out["n_apd"] = float(np.mean(gen_apd / real_apd))
-        out["bone_std"] = metrics.bone_length_consistency(motions, parents)
-        if real is not None:
-            out.update(damping_metrics(metrics.body_speed(motions), metrics.body_amplitude(motions), labels, real))
-    elif bone_std is not None:
-        out["n_apd"] = 1.0
-        out["bone_std"] = bone_std
+    out["n_apd"] = metrics.apd_ratio(s.apd, real.apd) if generated and s.apd else (1.0 if not generated else float("nan"))
+    out["bone_std"] = s.bone_std
+    out.update(damping_metrics(s.speed, s.amplitude, s.labels, real))
     return out
+
+
+def _multimodality(feats: np.ndarray, labels: np.ndarray, rng: np.random.Generator) -> float:
+    if not any(np.count_nonzero(labels == c) >= 2 for c in np.unique(labels)):
+        return float("nan")  # no action has two motions (see not_available)
+    return metrics.multimodality(feats, labels, 20, rng=rng)
+
+
+def not_available(labels: np.ndarray, actions: list[str]) -> list[str]:
+    """Why a set's per-action figures are missing: actions with no motion, or with one."""
+    counts = np.bincount(labels, minlength=len(actions))
+    none = [a for a, k in zip(actions, counts) if k == 0]
+    one = [a for a, k in zip(actions, counts) if k == 1]
+    notes = []
+    if none:
+        notes.append(f"no motions of {', '.join(none)}: no accuracy, speed or amplitude for them; "
+                     "they are left out of n-APD and Multimodality")
+    if one:
+        notes.append(f"one motion of {', '.join(one)}: n-APD and Multimodality need two, so these "
+                     "actions are left out of them")
+    if len(one) + len(none) == len(actions):
+        notes.append("no action has two motions: n-APD and Multimodality are not available")
+    if len(labels) < 2:
+        notes.append("one motion in all: FID and Diversity need two")
+    return notes
 
 
 def _softmax(logits: np.ndarray) -> np.ndarray:
@@ -189,37 +221,52 @@ def split_by_action(row: dict, actions) -> None:
 
 
 def summarize(per_repeat: list[dict[str, float]]) -> dict[str, list[float]]:
-    """metric -> [mean, 95% CI half-width] over repeats."""
-    keys = per_repeat[0].keys()
-    return {k: list(metrics.mean_ci95([r[k] for r in per_repeat])) for k in keys}
+    """metric -> [mean, 95% CI half-width] over repeats (of the repeats that have it)."""
+    keys = dict.fromkeys(k for r in per_repeat for k in r)
+    return {k: list(metrics.mean_ci95([r[k] for r in per_repeat if k in r])) for k in keys}
 
 
-def evaluate_real(real: RealSets, cfg: EvalConfig, parents) -> dict:
+# -- rows --------------------------------------------------------------------------------------------
+
+def evaluate_real(real: RealSets, cfg: EvalConfig) -> dict:
     rng = np.random.default_rng(cfg.seed + 20_000)
-    rows = [{**set_metrics(real.logits[r + 1], real.features[r + 1], real.labels, real.features[0], None,
-                           parents, real.apd, rng, real.bone_std[r + 1]),
-             **damping_metrics(real.speed[r + 1], real.amplitude[r + 1], real.labels, real)}
-            for r in range(cfg.repeats)]
+    rows = []
+    for r in range(cfg.repeats):
+        s = SetStats(real.logits[r + 1], real.features[r + 1], real.labels, real.bone_std[r + 1],
+                     real.speed[r + 1], real.amplitude[r + 1], {})
+        rows.append(set_metrics(s, real.features[0], rng, real, generated=False))
     return {"name": "Real motions", "metrics": summarize(rows), "per_repeat": rows}
 
 
-def evaluate_model(loaded, classifier, real: RealSets, cfg: EvalConfig, progress=None) -> dict:
-    """The protocol for one generator checkpoint (ODMO with cfg.sampling; baselines from noise)."""
-    from odmo_cli.generate import LoadedODMO, sample
+def evaluate_held_out(clips: ClipSet, val: np.ndarray, classifier, real: RealSets, cfg: EvalConfig) -> dict:
+    """The protocol for crops of the classifier's held-out real clips, against the shared real sets."""
+    rng = np.random.default_rng(cfg.seed + 40_000)
+    held = replace(clips, motions=[clips.motions[i] for i in val], labels=clips.labels[val])
+    n, parents = cfg.n_for(clips.manifest.name), clips.manifest.skeleton.parents
+    rows = []
+    for r in range(cfg.repeats):  # in order: the crops of set r + 1 are drawn after set r's metrics
+        motions, labels = real_crops(held, n, rng)  # (C*n, T, J, 3)
+        rows.append(set_metrics(set_stats(motions, labels, classifier, parents), real.features[r + 1], rng, real))
+    return {"name": "Real, classifier's held-out clips", "metrics": summarize(rows), "per_repeat": rows,
+            "clips": int(len(val))}
 
+
+def evaluate_model(loaded, classifier, real: RealSets, cfg: EvalConfig, progress=None) -> dict:
+    """The protocol for one generator checkpoint (ODMO with cfg.sampling; baselines from noise):
+    the sets are generated and read side by side (cfg.workers), their metrics taken in order."""
     rng = np.random.default_rng(cfg.seed + 30_000)
     n = cfg.n_for(loaded.dataset["name"])
-    parents = _parents(loaded.dataset["skeleton"])
-    rows, seeds, start = [], [], time.perf_counter()
-    for r in range(cfg.repeats):
-        seed = cfg.seed + r
-        sampling = cfg.sampling if isinstance(loaded, LoadedODMO) else "mode-preserving"
+    parents = get_skeleton(loaded.dataset["skeleton"]).parents
+    sampling = cfg.sampling if isinstance(loaded, LoadedODMO) else "mode-preserving"
+    seeds = [cfg.seed + r for r in range(cfg.repeats)]
+
+    def one_set(seed: int) -> SetStats:
         batch = sample(loaded, ["all"], n, seed=seed, sampling=sampling)
-        labels = np.array([loaded.actions.index(a) for a in batch.actions])
-        logits, feats = classifier.predict(batch.motions)
-        rows.append(set_metrics(logits, feats, labels, real.features[r + 1], batch.motions, parents,
-                                real.apd, rng, real=real))
-        seeds.append(seed)
+        return set_stats(batch.motions, batch.labels, classifier, parents)
+
+    rows, start = [], time.perf_counter()
+    for r, stats in enumerate(parallel_map(one_set, seeds, cfg.n_workers)):
+        rows.append(set_metrics(stats, real.features[r + 1], rng, real))
         if progress:
             progress(r + 1)
     conv = isinstance(loaded, LoadedODMO) and cfg.sampling != "mode-preserving"
@@ -228,39 +275,50 @@ def evaluate_model(loaded, classifier, real: RealSets, cfg: EvalConfig, progress
             "per_action": n, "seconds": time.perf_counter() - start}
 
 
-def evaluate_samples(path: Path, classifier, real: RealSets, actions: list[str], cfg: EvalConfig,
-                     parents) -> dict:
-    """Motions produced elsewhere (a samples .npz) against the same real sets: one set, no CI."""
-    from odmo_cli.io import read_samples
-
-    data = read_samples(path)
+def read_samples_for(path: Path, classifier, manifest) -> tuple[np.ndarray, np.ndarray]:
+    """A samples file's motions (N, T, J, 3) and action indices, checked against the dataset and
+    its classifier: skeleton, joints, frames, actions, finite values. UserError naming the mismatch."""
+    data = read_samples(path, optional=("dataset",))
     motions, names = data["motions"].astype(np.float32), [str(a) for a in data["actions"]]
+    if data["skeleton"] != manifest.skeleton_name:
+        raise UserError(f"samples {path.name} have skeleton {data['skeleton']}; {manifest.name} has "
+                        f"{manifest.skeleton_name}")
+    if motions.ndim != 4 or motions.shape[-1] != 3 or len(motions) == 0:
+        raise UserError(f"samples {path.name}: motions must be (N, frames, joints, 3) with N >= 1, got {motions.shape}")
+    joints = classifier.cfg.n_joints
+    if motions.shape[2] != joints:
+        raise UserError(f"samples {path.name} have {motions.shape[2]} joints; the classifier reads {joints}")
+    if motions.shape[1] != manifest.clip_length:
+        raise UserError(f"samples {path.name} have {motions.shape[1]} frames; {manifest.name}'s protocol (and "
+                        f"its classifier) reads {manifest.clip_length}-frame motions")
+    bad = np.flatnonzero(~np.isfinite(motions).all(axis=(1, 2, 3)))
+    if len(bad):
+        raise UserError(f"samples {path.name} hold NaN or infinite values ({len(bad)} motions, the first: {bad[0]})")
+    actions = list(manifest.action_names)
     unknown = sorted(set(names) - set(actions))
     if unknown:
-        raise UserError(f"samples {path} have actions {', '.join(unknown)} not in the dataset ({', '.join(actions)})")
-    labels = np.array([actions.index(a) for a in names])
-    logits, feats = classifier.predict(motions)
-    row = set_metrics(logits, feats, labels, real.features[1], motions, parents, real.apd,
-                      np.random.default_rng(cfg.seed), real=real)
-    return {"name": path.name, "metrics": {k: [v, 0.0] for k, v in row.items()}, "per_repeat": [row]}
+        raise UserError(f"samples {path.name} have actions {', '.join(unknown)} not in {manifest.name} "
+                        f"({', '.join(actions)})")
+    return motions, np.array([actions.index(a) for a in names])
 
 
-def _parents(skeleton: str):
-    from odmo_cli.skeletons import get_skeleton
-
-    return get_skeleton(skeleton).parents
+def evaluate_samples(path: Path, classifier, real: RealSets, manifest, cfg: EvalConfig) -> dict:
+    """Motions produced elsewhere (a samples .npz) against the same real sets: one set, no CI.
+    Figures an action has too few motions for are left out and said why (`not_available`)."""
+    motions, labels = read_samples_for(path, classifier, manifest)
+    stats = set_stats(motions, labels, classifier, manifest.skeleton.parents)
+    row = set_metrics(stats, real.features[1], np.random.default_rng(cfg.seed), real)
+    return {"name": path.name, "metrics": {k: [v, 0.0] for k, v in row.items()}, "per_repeat": [row],
+            "not_available": not_available(labels, list(manifest.action_names))}
 
 
 @torch.inference_mode()
 def customization(loaded, classifier, cfg: EvalConfig, codes_per_action: int = 40, n_ends: int = 10) -> dict:
     """ODMO §4.4: per action, codes_per_action codes x n_ends end points on the segment between
     two real end points of the class; accuracy and dist_e over `repeats` draws."""
-    from odmo_cli.generate import decode
-    from odmo_cli.latent import sample_codes
-
-    rows = []
     bank_labels, bank_ends = loaded.bank["labels"].numpy(), loaded.bank["end_points"].numpy()
-    for r in range(cfg.repeats):
+
+    def one_draw(r: int) -> dict:
         rng = np.random.default_rng(cfg.seed + 40_000 + r)
         codes, labels, ends = [], [], []
         for a in range(len(loaded.actions)):
@@ -274,8 +332,9 @@ def customization(loaded, classifier, cfg: EvalConfig, codes_per_action: int = 4
         codes, labels, ends = np.concatenate(codes), np.concatenate(labels), np.concatenate(ends).astype(np.float32)
         motions = decode(loaded, codes, labels, ends)
         logits, _ = classifier.predict(motions)
-        rows.append({"accuracy": 100 * metrics.accuracy(logits, labels),
-                     "dist_e": metrics.dist_e(ends, motions[:, -1, 0])})
+        return {"accuracy": 100 * metrics.accuracy(logits, labels), "dist_e": metrics.dist_e(ends, motions[:, -1, 0])}
+
+    rows = list(parallel_map(one_draw, range(cfg.repeats), cfg.n_workers))
     return {"name": Path(loaded.source).name, "metrics": summarize(rows), "per_repeat": rows}
 
 
@@ -291,8 +350,6 @@ class Report:
 
 def model_spec(spec: str | None) -> tuple[str | None, str | None]:
     """'odmo.pt@conventional' -> ('odmo.pt', 'conventional'): one model's row with its own sampling."""
-    from odmo_cli.generate import SAMPLING
-
     if spec and "@" in spec:
         path, _, sampling = spec.rpartition("@")
         if sampling not in SAMPLING:
@@ -301,23 +358,28 @@ def model_spec(spec: str | None) -> tuple[str | None, str | None]:
     return spec, None
 
 
+def samples_dataset(path: Path) -> str:
+    """The dataset a samples file was made for: its `dataset` entry, else the dataset of its skeleton."""
+    data = read_samples(path, keys=(), optional=("dataset",))
+    if data["dataset"] is not None:
+        return str(data["dataset"])
+    named = [m for m in available_manifests() if load_manifest(m).skeleton_name == data["skeleton"]]
+    if not named:
+        raise UserError(f"samples {path.name} have skeleton {data['skeleton']}, which no known dataset has; "
+                        "give --dataset")
+    return named[0]
+
+
 def run_evaluation(models: list[str | None], dataset: str | None, data, classifier_path: str | None,
                    cfg: EvalConfig, samples: list[Path] = (), with_customization: bool = False,
                    progress=None, held_out: bool = False) -> Report:
     """Load everything once, compute real features once, evaluate every model (and samples file)."""
-    from odmo_cli.data.locate import resolve
-    from odmo_cli.data.readers import read_dataset
-    from odmo_cli.generate import SAMPLING, LoadedODMO, load_model
-    from odmo_cli.models.classifier import check_matches, load_classifier
-
     if cfg.sampling not in SAMPLING:
         raise UserError(f"unknown sampling {cfg.sampling!r}; valid: {', '.join(SAMPLING)}")
     start = time.perf_counter()
     specs = [model_spec(m) for m in (models or ([] if samples else [None]))]
     loaded = [load_model(path) for path, _ in specs]
-    name = dataset or (loaded[0].dataset["name"] if loaded else None)
-    if name is None:
-        raise UserError("give --dataset with --samples")
+    name = dataset or (loaded[0].dataset["name"] if loaded else samples_dataset(Path(samples[0])))
     manifest, root = resolve(name, data)
     for m in loaded:
         if m.actions != list(manifest.action_names):
@@ -325,16 +387,18 @@ def run_evaluation(models: list[str | None], dataset: str | None, data, classifi
     clf_path = classifier_path or shipped_classifier(manifest.name)
     if clf_path is None:
         raise UserError(f"no classifier for {manifest.name}: pass --classifier (e.g. one trained with "
-                        f"`odmo train --model classifier --dataset {manifest.name}`)")
+                        f"`odmo train classifier --dataset {manifest.name}`)")
     classifier = load_classifier(clf_path)
     check_matches(classifier, manifest)
+    for path in samples:  # every samples file is checked before the slow part
+        read_samples_for(Path(path), classifier, manifest)
     torch.manual_seed(cfg.seed)
     clips = read_dataset(root, manifest)
     val = held_out_clips(classifier, clips) if held_out else None  # fail before the slow part
     real = real_sets(clips, classifier, cfg)
     report = Report(manifest.name, str(clf_path), {"repeats": cfg.repeats, "per_action": cfg.n_for(manifest.name),
                                                   "sampling": cfg.sampling, "seed": cfg.seed})
-    report.rows.append(evaluate_real(real, cfg, manifest.skeleton.parents))
+    report.rows.append(evaluate_real(real, cfg))
     if val is not None:
         report.rows.append(evaluate_held_out(clips, val, classifier, real, cfg))
     for m, (_, sampling) in zip(loaded, specs):
@@ -343,8 +407,7 @@ def run_evaluation(models: list[str | None], dataset: str | None, data, classifi
         if with_customization and isinstance(m, LoadedODMO):  # baselines take no end point
             report.customization.append({**customization(m, classifier, own), "name": report.rows[-1]["name"]})
     for path in samples:
-        report.rows.append(evaluate_samples(Path(path), classifier, real, list(manifest.action_names), cfg,
-                                            manifest.skeleton.parents))
+        report.rows.append(evaluate_samples(Path(path), classifier, real, manifest, cfg))
     for row in report.rows:
         split_by_action(row, list(manifest.action_names))
     report.seconds = time.perf_counter() - start

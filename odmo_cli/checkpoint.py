@@ -1,0 +1,264 @@
+"""The checkpoint format: one `.pt` file per model, holding only tensors and plain values.
+
+Every checkpoint odmo writes is a dict (docs/formats.md, "Checkpoints"):
+    format_version  FORMAT_VERSION; a file from a newer odmo is refused with a clear message
+    kind            odmo | a2m | dvgan | classifier
+    config          the model's config (`Config.to_dict`), train_config the training's
+    dataset         dataset_description(clips): what the model was trained on
+    state_dict      the weights (float32; shipped files: float16 and int8 rows, see float_state)
+    optimizer*, epoch, rng, split, history   training state, for an exact resume
+    latent_bank, modes (ODMO), report        what training measured at the end
+It is written atomically and read with torch.load(weights_only=True): no pickled classes, so a
+file from anyone is safe to open.
+
+Here too: the table of shipped files and their short names (`--model humanact12`, `--model cmu`),
+and `load_model`, which turns any generator checkpoint into a ready model.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from odmo_cli.data.manifest import canonical_name, normalize_action
+from odmo_cli.errors import UserError
+from odmo_cli.io import atomic_path
+from odmo_cli.latent import ActionModes, fit_modes
+from odmo_cli.models import a2m, dvgan
+from odmo_cli.models.odmo import ODMO, ODMOConfig
+
+FORMAT_VERSION = 1  # bump when a reader of the old format would misread a new file
+
+
+# -- reading and writing -------------------------------------------------------------------------
+
+def save_checkpoint(path: str | Path, payload: dict) -> None:
+    """Write a checkpoint atomically. The payload must hold only tensors and plain values."""
+    with atomic_path(path) as tmp:
+        torch.save(payload, tmp)
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    """Load a checkpoint without unpickling classes (safe for untrusted files). UserError for a
+    missing or unreadable file, and for one written in a newer format than this odmo reads."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"checkpoint not found: {path}")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises several types for bad or unsafe files
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise UserError(f"cannot load checkpoint {path}: {first}") from None
+    if not isinstance(payload, dict):
+        raise UserError(f"cannot load checkpoint {path}: not an odmo checkpoint (no dict inside)")
+    version = payload.get("format_version")
+    if isinstance(version, int) and version > FORMAT_VERSION:
+        raise UserError(f"{path} has checkpoint format {version}, newer than this odmo reads "
+                        f"(format {FORMAT_VERSION} and older): upgrade odmo to load it")
+    return payload
+
+
+def describe_checkpoint(path: str | Path) -> dict:
+    """The plain-value parts of a checkpoint: what `odmo info` prints."""
+    ckpt = load_checkpoint(path)
+    if "kind" not in ckpt or "config" not in ckpt:
+        raise UserError(f"{path} is not an odmo checkpoint (no model kind or config inside)")
+    state = ckpt.get("state_dict", {})
+    # buffers such as A2M's bone-length bank are data, not parameters
+    n_params = sum(t.numel() for k, t in state.items() if k != "bone_bank")
+    bank = ckpt.get("latent_bank")
+    last = ckpt.get("history", [])[-1:] or [{}]
+    banks = {"latent_bank": f"{len(bank['codes'])} codes" if bank else "none (training not finished)"}
+    if ckpt["kind"] == "a2m":
+        banks = {"bone_bank": f"{len(state['bone_bank'])} real bone-length sets for sampling"}
+    elif ckpt["kind"] != "odmo":
+        banks = {}
+    return {
+        "file": str(path), "format_version": ckpt.get("format_version"), "kind": ckpt["kind"],
+        "parameters": n_params, "weights": ckpt.get("weights_dtype", "float32"),
+        "epoch": ckpt.get("epoch"), "dataset": ckpt.get("dataset", {}),
+        "config": ckpt["config"], "train_config": ckpt.get("train_config", {}), **banks,
+        "last_epoch_losses": {k: round(v, 5) if isinstance(v, float) else v for k, v in last[0].items()},
+        "report": ckpt.get("report", {}),
+    }
+
+
+# -- what a checkpoint records -------------------------------------------------------------------
+
+def dataset_description(clips) -> dict:
+    """What a model was trained on: name, actions, skeleton, fps, clip length T and up axis."""
+    m = clips.manifest
+    return {"name": m.name, "actions": list(m.action_names), "skeleton": m.skeleton_name,
+            "fps": float(m.fps), "length": int(m.clip_length), "up_axis": m.up_axis}
+
+
+def rng_state(np_rng: np.random.Generator, torch_gen: torch.Generator) -> dict:
+    """Every random stream a trainer draws from, as plain values: its numpy generator (PCG64, the
+    128-bit integers as strings), its torch generator, and torch's global generator (dropout)."""
+    s = np_rng.bit_generator.state
+    return {"numpy": {"bit_generator": s["bit_generator"], "state": str(s["state"]["state"]),
+                      "inc": str(s["state"]["inc"]), "has_uint32": int(s["has_uint32"]),
+                      "uinteger": int(s["uinteger"])},
+            "torch": torch_gen.get_state(), "torch_global": torch.get_rng_state()}
+
+
+def restore_rng(state: dict, np_rng: np.random.Generator, torch_gen: torch.Generator) -> None:
+    """Put the streams back where rng_state found them (files without the global state keep it)."""
+    d = state["numpy"]
+    np_rng.bit_generator.state = {"bit_generator": d["bit_generator"],
+                                  "state": {"state": int(d["state"]), "inc": int(d["inc"])},
+                                  "has_uint32": d["has_uint32"], "uinteger": d["uinteger"]}
+    torch_gen.set_state(state["torch"])
+    if "torch_global" in state:
+        torch.set_rng_state(state["torch_global"])
+
+
+def float_state(ckpt: dict) -> dict:
+    """The checkpoint's state dict with int8 rows (shipped files, see ship.compact) turned back into
+    float32 matrices; float16 tensors load into float32 parameters as they are."""
+    scales = ckpt.get("int8_scales") or {}
+    return {k: v.float() * scales[k].float() if k in scales else v for k, v in ckpt["state_dict"].items()}
+
+
+# -- the shipped files ---------------------------------------------------------------------------
+
+# Per dataset: the short name users type (`--model cmu`) and the files in odmo_cli/assets/models
+# (`odmo ship` writes them, with the recipes in odmo_cli/ship.py).
+SHIPPED = {
+    "humanact12": {"short": "humanact12", "odmo": "odmo_humanact12.pt", "classifier": "classifier_humanact12.pt"},
+    "cmu_mocap": {"short": "cmu", "odmo": "odmo_cmu.pt", "classifier": "classifier_cmu.pt"},
+}
+DEFAULT_MODEL = "humanact12"
+
+
+def shipped_file(name: str, part: str = "odmo") -> Path | None:
+    """The installed shipped file ("odmo" or "classifier") of a dataset or short name; None if absent."""
+    entry = SHIPPED.get(canonical_name(name))
+    if entry is None:
+        return None
+    path = Path(str(resources.files("odmo_cli") / "assets" / "models" / entry[part]))
+    return path if path.is_file() else None
+
+
+def shipped_names() -> str:
+    return ", ".join(e["short"] for e in SHIPPED.values())
+
+
+def checkpoint_path(spec: str | Path | None) -> Path:
+    """A checkpoint file, or a shipped model's short name (None: the default) -> the file."""
+    spec = str(spec or DEFAULT_MODEL)
+    if Path(spec).is_file():
+        return Path(spec)
+    if canonical_name(spec) not in SHIPPED:
+        raise UserError(f"no model {spec!r}: give a checkpoint file or a shipped name ({shipped_names()})")
+    path = shipped_file(spec)
+    if path is None:
+        raise UserError(f"no shipped model {spec!r} in this install; give a checkpoint path instead")
+    return path
+
+
+def model_name(source: str | Path) -> str:
+    """How a samples file names its model: a shipped model's short name, else the file name (never
+    a path of the machine that made it)."""
+    path = Path(source)
+    for dataset, entry in SHIPPED.items():
+        shipped = shipped_file(dataset)
+        if shipped is not None and path.resolve() == shipped.resolve():
+            return entry["short"]
+    return path.name
+
+
+# -- loading a generator -------------------------------------------------------------------------
+
+BASELINES = {"a2m": a2m.model_from_checkpoint, "dvgan": dvgan.model_from_checkpoint}  # kind -> builder
+SAMPLING = ("mode-preserving", "conventional")
+
+
+@dataclass
+class Loaded:
+    """A generator in eval mode with what its checkpoint says about the data."""
+
+    model: torch.nn.Module
+    dataset: dict  # name, actions, skeleton, fps, length, up_axis
+    source: str  # the file it came from
+
+    @property
+    def actions(self) -> list[str]:
+        return list(self.dataset["actions"])
+
+    def action_index(self, name: str) -> int:
+        key = normalize_action(name)
+        if key in self.actions:
+            return self.actions.index(key)
+        raise UserError(f"unknown action {name!r}; valid: {', '.join(self.actions)}, all")
+
+    def action_indices(self, names: list[str]) -> list[int]:
+        """["all"] -> every action; else each name's index."""
+        return list(range(len(self.actions))) if list(names) == ["all"] else [self.action_index(a) for a in names]
+
+
+@dataclass
+class LoadedODMO(Loaded):
+    """ODMO with its latent bank and mode mixtures (built once, at load)."""
+
+    bank: dict = field(default_factory=dict)  # codes (N, D), labels, end_points (N, 3), modes, names
+    modes: dict = field(default_factory=dict)  # plain values, as stored (latent.fit_modes)
+    mixtures: dict = field(init=False, repr=False)  # sampling -> [ActionModes per action]
+
+    def __post_init__(self):
+        self.set_modes(self.modes)
+
+    def set_modes(self, modes: dict) -> None:
+        self.modes = modes
+        self.mixtures = {"mode-preserving": [ActionModes.from_plain(m) for m in modes["actions"]],
+                         "conventional": [ActionModes.from_plain(m) for m in modes["conventional"]]}
+
+    def action_modes(self, action: int, sampling: str = "mode-preserving") -> ActionModes:
+        return self.mixtures[sampling][action]
+
+
+@dataclass
+class LoadedBaseline(Loaded):
+    """A baseline generator (Action2Motion, DVGAN): motions from noise, no codes or end points."""
+
+    kind: str = ""
+
+
+def load_model(spec: str | Path | None) -> LoadedODMO | LoadedBaseline:
+    """Any generator checkpoint (path or shipped short name; None: the default), ready to sample."""
+    path = checkpoint_path(spec)
+    ckpt = load_checkpoint(path)
+    kind = ckpt.get("kind")
+    if kind == "odmo":
+        return _odmo_from(path, ckpt)
+    if kind not in BASELINES:
+        raise UserError(f"{path} holds a {kind!r} model; generators are: odmo, {', '.join(BASELINES)}")
+    model = BASELINES[kind](ckpt)
+    model.eval()
+    return LoadedBaseline(model, ckpt["dataset"], str(path), kind)
+
+
+def load_odmo(spec: str | Path | None) -> LoadedODMO:
+    """An ODMO checkpoint (path or shipped short name; None: the default)."""
+    path = checkpoint_path(spec)
+    ckpt = load_checkpoint(path)
+    if ckpt.get("kind") != "odmo":
+        raise UserError(f"{path} holds a {ckpt.get('kind')!r} model; this command needs an ODMO checkpoint "
+                        "(modes, latent codes and end points are ODMO's)")
+    return _odmo_from(path, ckpt)
+
+
+def _odmo_from(path: Path, ckpt: dict) -> LoadedODMO:
+    if "latent_bank" not in ckpt:
+        raise UserError(f"{path} has no latent bank: its training did not finish (resume it to the end)")
+    with torch.device("meta"):  # no random initialisation: every weight comes from the file
+        model = ODMO(ODMOConfig.from_dict(ckpt["config"]))
+    state = {k: v.float() if v.is_floating_point() else v for k, v in float_state(ckpt).items()}
+    model.load_state_dict(state, assign=True)
+    model.eval()
+    modes = ckpt.get("modes") or fit_modes(ckpt["latent_bank"], model.cfg.n_classes)
+    return LoadedODMO(model, ckpt["dataset"], str(path), ckpt["latent_bank"], modes)

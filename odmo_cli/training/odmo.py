@@ -1,0 +1,200 @@
+"""Training ODMO (main paper §3.2, eq. 5) on the shared loop: pairs of class-balanced clips,
+Adam with gradient clipping, teacher forcing decayed linearly, and at the end the latent bank,
+the mode mixtures and a report of what the model learnt.
+
+An epoch draws `pairs_per_epoch` pairs (default: one per training clip), half of them of one
+action (`same_class_fraction`, as the authors' release), each clip a random T-frame crop.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from odmo_cli import metrics
+from odmo_cli.data.dataset import MotionDataset, crops_from_start, pair_indices
+from odmo_cli.data.readers import ClipSet
+from odmo_cli.errors import UserError
+from odmo_cli.latent import ActionModes, assign, fit_modes, latent_bank, separation
+from odmo_cli.models.losses import odmo_terms, total_loss
+from odmo_cli.models.odmo import ODMO, ODMOConfig, preset_values
+from odmo_cli.parallel import thread_count
+from odmo_cli.training.loop import LoopConfig, Progress, Trainer, TrainResult, dataset_shapes
+
+
+@dataclass
+class TrainConfig(LoopConfig):
+    epochs: int = 300
+    batch_size: int = 256  # pairs per step (each step sees 2 x batch_size clips)
+    lr: float = 1e-3
+    lr_final: float = 1e-3  # cosine decay from lr to lr_final over the epochs; equal = constant (paper)
+    tf_start: float = 1.0
+    tf_end: float = 0.3
+    tf_epochs: int = 0  # teacher forcing decays linearly over this many epochs (0: all epochs)
+    tf_per: str = "step"  # one teacher-forcing coin per time step for the batch (the release), or per "clip" and step
+    pairs_per_epoch: int = 0  # 0: as many pairs as training clips
+    same_class_fraction: float = 0.5  # the release pairs each clip with its class half the time; < 0: independent pairs
+    grad_clip: float = 1.0  # as in the authors' release
+
+    def __post_init__(self):
+        if self.epochs <= 0 or self.batch_size <= 0:
+            raise UserError(f"epochs and batch size must be positive, got {self.epochs} and {self.batch_size}")
+        if self.lr <= 0 or self.lr_final <= 0:
+            raise UserError(f"learning rates must be positive, got {self.lr} and {self.lr_final}")
+        if not (0 <= self.tf_end <= 1 and 0 <= self.tf_start <= 1):
+            raise UserError("teacher-forcing rates must be in [0, 1]")
+        if self.tf_per not in ("step", "clip"):
+            raise UserError(f"teacher forcing per step or clip, got {self.tf_per!r}")
+        if self.same_class_fraction > 1:
+            raise UserError(f"--same-class-fraction must be in [0, 1], got {self.same_class_fraction}")
+        super().__post_init__()
+
+    def teacher_rate(self, epoch: int) -> float:
+        span = self.tf_epochs or self.epochs
+        frac = min(epoch / max(span - 1, 1), 1.0)
+        return self.tf_start + (self.tf_end - self.tf_start) * frac
+
+
+def model_config_for(clips: ClipSet, overrides: dict | None = None, preset: str = "odmo") -> ODMOConfig:
+    """ODMOConfig for the clips' dataset: its shapes, the preset's loss scales (models.odmo.PRESETS),
+    then `overrides`."""
+    return ODMOConfig.from_dict({**dataset_shapes(clips), **preset_values(preset, clips.manifest.name),
+                                 **(overrides or {})})
+
+
+class ODMOTrainer(Trainer):
+    kind = "odmo"
+    config_class = ODMOConfig
+    model_class = ODMO
+
+    def build_optimizers(self) -> dict:
+        return {"optimizer": torch.optim.Adam(self.model.parameters(), lr=self.tc.lr)}
+
+    def setup(self) -> None:
+        self.data = MotionDataset(self.clips, self.cfg.length, rng=self.np_rng)
+
+    def train_epoch(self) -> dict[str, float]:
+        tc, model, opt = self.tc, self.model, self.optimizers["optimizer"]
+        model.train()
+        teacher_rate = tc.teacher_rate(self.epoch)
+        n_pairs = tc.pairs_per_epoch or len(self.train_idx)
+        same = tc.same_class_fraction if tc.same_class_fraction >= 0 else None
+        labels = self.clips.labels[self.train_idx]
+        pairs = self.train_idx[pair_indices(labels, n_pairs, self.np_rng, same)]  # (n, 2)
+        sums: dict[str, float] = {}
+        for b in range(0, n_pairs, tc.batch_size):
+            chunk = pairs[b:b + tc.batch_size]
+            motion, lab = self.data.batch(np.concatenate([chunk[:, 0], chunk[:, 1]]))  # (2B, T, J, 3)
+            shape = (len(motion), self.cfg.length) if tc.tf_per == "clip" else (self.cfg.length,)
+            teacher = torch.rand(shape, generator=self.torch_gen) < teacher_rate
+            out = model(motion, lab, generator=self.torch_gen, teacher=teacher)
+            terms = odmo_terms(out, motion, lab, self.cfg)
+            loss = total_loss(terms, self.cfg)
+            self.check_finite(loss)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            if tc.grad_clip > 0:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), tc.grad_clip)
+            opt.step()
+            for k, v in terms.items():
+                sums[k] = sums.get(k, 0.0) + float(v.detach()) * len(chunk)
+            sums["total"] = sums.get("total", 0.0) + float(loss.detach()) * len(chunk)
+        return {"clips": 2 * n_pairs, "teacher": teacher_rate, **{k: v / n_pairs for k, v in sums.items()}}
+
+    def validate(self) -> dict[str, float]:
+        """Reconstruction error of held-out clips from their mean code, with no teacher forcing."""
+        idx = self.val_idx if len(self.val_idx) else self.train_idx
+        return reconstruction_error(self.model, self.clips, idx)
+
+
+@torch.no_grad()
+def reconstruction_error(model: ODMO, clips: ClipSet, idx: np.ndarray, batch: int = 512) -> dict[str, float]:
+    """Free-running reconstruction of clips[idx] from their mean codes and real end points (as at
+    sampling time, no teacher forcing): mean per-joint position error and end-point error (dataset
+    units), and the body's speed and amplitude over the clips' own (metrics.damping_ratios)."""
+    model.eval()
+    joint_err, end_err, recons, reals, labs = [], [], [], [], []
+    for b in range(0, len(idx), batch):
+        motion, labels = crops_from_start(clips, idx[b:b + batch], model.cfg.length)
+        mu, _ = model.encode(motion)
+        _, recon = model.decode(mu, labels, motion[:, -1, 0])
+        joint_err.append((recon - motion).norm(dim=-1).mean(dim=(1, 2)))
+        end_err.append((recon[:, -1, 0] - motion[:, -1, 0]).norm(dim=-1))
+        recons.append(recon.numpy())
+        reals.append(motion.numpy())
+        labs.append(labels.numpy())
+    labs = np.concatenate(labs)
+    damp = metrics.damping_ratios(np.concatenate(recons), labs, np.concatenate(reals), labs)
+    return {"mpjpe": float(torch.cat(joint_err).mean()), "end_error": float(torch.cat(end_err).mean()),
+            "speed": damp["speed"], "amplitude": damp["amplitude"]}
+
+
+@torch.no_grad()
+def noise_ceiling(model: ODMO, clips: ClipSet, idx: np.ndarray, seed: int, batch: int = 512) -> dict[str, float]:
+    """metrics.noise_ceiling of the model's own posterior over clips[idx] (canonical crops): the
+    speed and amplitude that the best squared-error decoder could reach under that noise."""
+    model.eval()
+    mus, stds, motions, labels = [], [], [], []
+    for b in range(0, len(idx), batch):
+        motion, lab = crops_from_start(clips, idx[b:b + batch], model.cfg.length)
+        mu, logvar = model.encode(motion)
+        mus.append(mu.numpy())
+        stds.append(torch.exp(0.5 * logvar).numpy())
+        motions.append(motion.numpy())
+        labels.append(lab.numpy())
+    c = metrics.noise_ceiling(np.concatenate(mus), np.concatenate(stds), np.concatenate(motions),
+                              np.concatenate(labels), np.random.default_rng(seed), draws=2)
+    return {"speed": c["speed"], "amplitude": c["amplitude"]}
+
+
+def mode_homogeneity(clips: ClipSet, idx: np.ndarray, bank: dict, modes: dict, length: int) -> float:
+    """metrics.mode_homogeneity (ODMO §4.3.1) of the canonical crops of clips[idx], each in the
+    discovered mode its bank code falls in: percent by which the modes split each action's real
+    motions into tighter groups (0: no better than one group). Actions with one clip are left out."""
+    motions, labels = crops_from_start(clips, idx, length)
+    labels = labels.numpy()
+    codes = bank["codes"].numpy().astype(np.float64)
+    found = np.zeros(len(idx), dtype=np.int64)
+    for a in np.unique(labels):
+        own = labels == a
+        found[own] = assign(ActionModes.from_plain(modes["actions"][a]), codes[own])
+    keep = np.isin(labels, [a for a in np.unique(labels) if np.count_nonzero(labels == a) >= 2])
+    if not keep.any():
+        return float("nan")
+    return metrics.mode_homogeneity(motions.numpy()[keep], labels[keep], found[keep])
+
+
+def finish(trainer: ODMOTrainer) -> dict:
+    """Latent bank, mode mixtures, held-out reconstruction and latent separation; written into the checkpoint."""
+    model, clips = trainer.model, trainer.clips
+    bank = latent_bank(model, clips, trainer.train_idx)
+    held = trainer.val_idx if len(trainer.val_idx) else trainer.train_idx
+    held_bank = latent_bank(model, clips, held)
+    report = {
+        "held_out_clips": int(len(held)),
+        **{f"held_out_{k}": v for k, v in reconstruction_error(model, clips, held).items()},
+        **{f"ceiling_{k}": v for k, v in noise_ceiling(model, clips, trainer.train_idx, trainer.tc.seed).items()},
+        **separation(bank["codes"].numpy(), bank["labels"].numpy(), held_bank["codes"].numpy(),
+                     held_bank["labels"].numpy(), trainer.cfg.n_classes),
+        "alpha": trainer.cfg.alpha,
+    }
+    modes = fit_modes(bank, trainer.cfg.n_classes, seed=trainer.tc.seed)
+    report["mode_homogeneity"] = mode_homogeneity(clips, trainer.train_idx, bank, modes, trainer.cfg.length)
+    trainer.save({"latent_bank": bank, "modes": modes, "report": report})
+    return report
+
+
+def train_odmo(clips: ClipSet, tc: TrainConfig, out: Path, overrides: dict | None = None,
+               resume: Path | None = None, progress: Progress | None = None,
+               preset: str = "odmo") -> TrainResult:
+    """Train ODMO on clips (or resume a checkpoint), then write the final checkpoint with its bank."""
+    with thread_count(tc.threads):
+        if resume is not None:
+            trainer = ODMOTrainer.resumed(resume, clips, tc, out)
+        else:
+            trainer = ODMOTrainer(clips, model_config_for(clips, overrides, preset), tc, out)
+        history = trainer.run(progress)
+        return TrainResult(Path(out), trainer.epoch, history, finish(trainer))

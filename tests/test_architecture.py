@@ -1,0 +1,178 @@
+"""The layout the guide asks for, checked from the source: the import graph points one way
+(docs/architecture.md), the docs link only to files that ship, and nothing points at DESIGN.md."""
+
+from __future__ import annotations
+
+import ast
+import re
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE = REPO / "odmo_cli"
+
+# Floors from the bottom up (docs/architecture.md): a module may import its own floor and those below.
+FLOORS = [
+    ["errors", "config", "parallel", "io", "metrics"],
+    ["geometry"],
+    ["formats", "data"],
+    ["models"],
+    ["latent"],
+    ["checkpoint"],
+    ["training", "generation"],
+    ["evaluation", "ship", "viz"],
+    ["cli", "__main__"],
+]
+
+
+def module_name(path: Path) -> str:
+    rel = path.relative_to(REPO).with_suffix("")
+    parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+    return ".".join(parts)
+
+
+def imports(path: Path) -> set[str]:
+    """Every odmo_cli module `path` imports, at the top or inside a function."""
+    tree = ast.parse(path.read_text(), str(path))
+    found = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("odmo_cli"):
+            found.add(node.module)
+            for alias in node.names:  # `from odmo_cli.models import a2m` imports a module
+                candidate = f"{node.module}.{alias.name}"
+                if (REPO / Path(*candidate.split("."))).with_suffix(".py").is_file():
+                    found.add(candidate)
+        elif isinstance(node, ast.Import):
+            found |= {a.name for a in node.names if a.name.startswith("odmo_cli")}
+    return found
+
+
+def graph() -> dict[str, set[str]]:
+    modules = {module_name(p): p for p in PACKAGE.rglob("*.py")}
+    out = {}
+    for name, path in modules.items():
+        # a package's __init__ is imported with any of its modules; the arrow worth checking is the module's own
+        out[name] = {m for m in imports(path) if m != name and m in modules and not name.startswith(m + ".")}
+    return out
+
+
+def stage(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else "odmo_cli"
+
+
+def floor(module: str) -> int:
+    s = stage(module)
+    if s == "odmo_cli":
+        return 0
+    return next(i for i, names in enumerate(FLOORS) if s in names)
+
+
+def test_every_module_has_a_floor():
+    assert all(floor(m) >= 0 for m in graph())
+
+
+def test_imports_point_down_or_sideways_only():
+    up = sorted(f"{a} -> {b}" for a, targets in graph().items() for b in targets if floor(b) > floor(a))
+    assert up == []
+
+
+@pytest.mark.parametrize("source, target", [
+    ("models", "training"), ("models", "data"), ("generation", "ship"), ("evaluation", "ship"),
+    ("training", "evaluation"), ("training", "generation"), ("generation", "training"),
+])
+def test_no_arrow_between(source, target):
+    arrows = [f"{a} -> {b}" for a, targets in graph().items() for b in targets
+              if stage(a) == source and stage(b) == target]
+    assert arrows == []
+
+
+def test_no_import_cycles():
+    g = graph()
+    seen, on_stack, cycles = set(), [], []
+
+    def visit(node):
+        if node in on_stack:
+            cycles.append(on_stack[on_stack.index(node):] + [node])
+            return
+        if node in seen:
+            return
+        seen.add(node)
+        on_stack.append(node)
+        for nxt in sorted(g[node]):
+            visit(nxt)
+        on_stack.pop()
+
+    for node in sorted(g):
+        visit(node)
+    assert cycles == []
+
+
+# -- docs ---------------------------------------------------------------------------------------
+
+DOCS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")
+
+
+@pytest.mark.parametrize("page", DOCS, ids=lambda p: p.name)
+def test_relative_links_resolve_to_files_in_the_repository(page):
+    missing = []
+    for target in LINK.findall(page.read_text()):
+        if re.match(r"^[a-z]+:", target) or target.startswith("#"):
+            continue  # a web address or an anchor on the page itself
+        path = (page.parent / target.split("#")[0]).resolve()
+        if not path.exists() or REPO not in path.parents:
+            missing.append(target)
+    assert missing == []
+
+
+def test_readme_is_two_screens_and_starts_with_the_quick_start():
+    lines = (REPO / "README.md").read_text().splitlines()
+    assert len(lines) <= 200
+    first_screen = "\n".join(lines[:50])
+    assert "<!-- ci:install -->" in first_screen and "<!-- ci:test -->" in first_screen
+
+
+def test_nothing_points_at_a_design_file_that_does_not_ship():
+    texts = [p for p in [*PACKAGE.rglob("*.py"), *DOCS] if "DESIGN.md" in p.read_text()]
+    assert texts == []
+    from typer.testing import CliRunner
+
+    from odmo_cli.cli import app
+
+    for command in (["sample", "--help"], ["eval", "--help"], ["ship", "--help"], ["train", "odmo", "--help"]):
+        res = CliRunner().invoke(app, command, env={"COLUMNS": "200"})
+        assert res.exit_code == 0 and "DESIGN" not in res.stdout and ".py" not in res.stdout, command
+
+
+def readme_block(marker: str) -> list[str]:
+    """The command lines of the README code block that follows `marker`, comments cut."""
+    lines, inside, found = [], False, False
+    for line in (REPO / "README.md").read_text().splitlines():
+        if marker in line:
+            found = True
+        elif found and line.startswith("```"):
+            if inside:
+                break
+            inside = True
+        elif inside and line.strip():
+            lines.append(line.split("  #")[0].strip())
+    return lines
+
+
+def test_the_readme_main_job_runs_as_written(tmp_path, monkeypatch):
+    """Against the shipped model, in a fresh folder: exit 0 for every line of the first block."""
+    import shlex
+
+    from typer.testing import CliRunner
+
+    from odmo_cli.cli import app
+
+    monkeypatch.chdir(tmp_path)
+    commands = readme_block("<!-- readme:run -->")
+    assert len(commands) >= 4 and all(c.startswith("odmo ") for c in commands)
+    for command in commands:
+        res = CliRunner(env={"COLUMNS": "80"}).invoke(app, shlex.split(command)[1:])
+        assert res.exit_code == 0, f"{command}\n{res.output}"
+        assert all(len(line) <= 80 for line in res.stdout.splitlines()), f"{command}: wider than 80 columns"
