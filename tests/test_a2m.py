@@ -103,9 +103,9 @@ def test_folding_the_root_rotation_keeps_the_pose(clips):
 # -- training ------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("representation", ["xyz", "lie"])
-def test_tiny_training_decreases_the_loss(clips, representation):
+def test_tiny_training_decreases_the_loss(clips, representation, tmp_path):
     cfg = a2m_config_for(clips, representation, TINY)
-    history = A2MTrainer(clips, cfg, tiny_tc(epochs=20), "unused.pt").run()
+    history = A2MTrainer(clips, cfg, tiny_tc(epochs=20), tmp_path / "a2m.pt").run()
     losses = [h["loss"] for h in history]
     assert all(np.isfinite(losses))
     assert np.mean(losses[-3:]) < 0.5 * np.mean(losses[:3])
@@ -203,10 +203,10 @@ def test_cli_eval_compares_xyz_and_lie_models_in_one_table(tmp_path):
     assert all(np.isfinite(m["fid"][0]) for m in rows.values())
 
 
-def test_cmu_skeleton_lie_model():
+def test_cmu_skeleton_lie_model(tmp_path):
     manifest, root = resolve(demo_folder("cmu"))
     cmu = read_dataset(root, manifest)
-    trainer = A2MTrainer(cmu, a2m_config_for(cmu, "lie", TINY), tiny_tc(epochs=1), "unused.pt")
+    trainer = A2MTrainer(cmu, a2m_config_for(cmu, "lie", TINY), tiny_tc(epochs=1), tmp_path / "a2m.pt")
     assert trainer.lambda_kl == 0.1 and trainer.model.cfg.pose_dim == 60
     trainer.run()
     motions = trainer.model.eval().generate(torch.arange(len(manifest.actions)), torch.Generator().manual_seed(0))
