@@ -4,8 +4,8 @@
   end with the weights of one process training on the same global batches, to float tolerance;
 - a run resumed on two processes from a one-process checkpoint ends where one process would;
 - DVGAN trains on two processes (its noise is each rank's own: it runs, it is not compared);
-- Ctrl-C on the launcher of `odmo train --nproc 2` stops both processes, exit 130, with the last
-  completed epoch saved;
+- Ctrl-C on the launcher of `odmo train --nproc 2`, or on one of its processes, stops both, exit
+  130, with the last completed epoch saved;
 - a device that is absent is one line and exit 2, before anything is written.
 
 The worker processes run test_training_loop.train (the tiny recipes) with the environment torchrun
@@ -172,7 +172,21 @@ def test_a2m_and_classifier_match_one_process_and_dvgan_runs(tmp_path, monkeypat
                                       if t.is_floating_point())
 
 
-def test_ctrl_c_on_the_launcher_stops_every_process_and_keeps_the_last_epoch(tmp_path):
+def worker_pid(launcher: subprocess.Popen, rank: int) -> int:
+    """The pid of the launcher's process of `rank` (Linux: from /proc)."""
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            if int(stat.read_text().rsplit(")", 1)[1].split()[1]) == launcher.pid and \
+                    f"RANK={rank}".encode() in (stat.parent / "environ").read_bytes().split(b"\0"):
+                return int(stat.parent.name)
+        except (OSError, IndexError, ValueError):
+            continue
+    raise AssertionError(f"no process of rank {rank} under the launcher")
+
+
+@pytest.mark.skipif(not Path("/proc/self/environ").exists(), reason="finds the processes through /proc")
+@pytest.mark.parametrize("where", ["launcher", "rank 1"])
+def test_ctrl_c_stops_every_process_and_keeps_the_last_epoch(tmp_path, where):
     out = tmp_path / "clf.pt"
     cmd = [sys.executable, "-m", "odmo_cli", "train", "classifier", "--dataset", str(demo_folder("humanact12")),
            "--nproc", "2", "--epochs", "100000", "--checkpoint-every", "1", "--threads", "1", "--out", str(out)]
@@ -183,13 +197,14 @@ def test_ctrl_c_on_the_launcher_stops_every_process_and_keeps_the_last_epoch(tmp
         while not out.exists() and launcher.poll() is None and time.monotonic() < deadline:
             time.sleep(0.2)
         assert out.exists(), launcher.communicate(timeout=60)
-        launcher.send_signal(signal.SIGINT)
+        os.kill(launcher.pid if where == "launcher" else worker_pid(launcher, 1), signal.SIGINT)
         stdout, stderr = launcher.communicate(timeout=120)
     finally:
         if launcher.poll() is None:
             launcher.kill()
     assert launcher.returncode == 130, stderr
-    # rank 0 either takes the Ctrl-C itself or first sees rank 1 leave; it keeps the last epoch either way
+    # rank 0 either takes the Ctrl-C (or the launcher's SIGTERM) itself or first sees rank 1 leave; it
+    # keeps the last completed epoch either way
     assert ("interrupted: the last completed epoch is saved in" in stderr
             or "another training process stopped" in stderr), stderr
     assert "Traceback" not in stderr

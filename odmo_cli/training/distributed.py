@@ -22,6 +22,7 @@ gloo on the CPU and NCCL on CUDA GPUs (one GPU per process: cuda:LOCAL_RANK).
 from __future__ import annotations
 
 import contextlib
+import inspect
 import os
 import signal
 import socket
@@ -39,8 +40,14 @@ import torch.distributed as dist
 from odmo_cli.device import resolve_device
 from odmo_cli.errors import UserError
 
-# What a collective raises when another process of the run has gone (gloo: its socket closed).
-PEER_ERRORS = (dist.DistError,)
+# What a collective raises when another process of the run has gone: gloo raises a plain
+# RuntimeError naming the closed connection, other backends a DistError.
+PEER_GONE = ("Connection closed by peer", "Connection reset by peer", "Broken pipe")
+
+
+def peer_lost(exc: BaseException) -> bool:
+    """Whether `exc` is a collective failing because another process of the run has stopped."""
+    return isinstance(exc, dist.DistError) or (isinstance(exc, RuntimeError) and any(m in str(exc) for m in PEER_GONE))
 
 
 def env_rank() -> int:
@@ -87,8 +94,11 @@ class Group:
             if type(m) is torch.nn.BatchNorm1d:
                 m.__class__ = GlobalBatchNorm  # same parameters and buffers, same state-dict keys
         ids = [self.device.index] if self.device.type == "cuda" else None
-        # every rank computes the same buffers (statistics of the same clips): nothing to broadcast
-        return DistributedDataParallel(model, device_ids=ids, broadcast_buffers=False)
+        # every rank computes the same buffers (statistics of the same clips): nothing to send at
+        # each forward pass (torch 2.13 renamed the switch; older versions know only the old name)
+        quiet = ("forward_sync_buffers" if "forward_sync_buffers" in inspect.signature(DistributedDataParallel).parameters
+                 else "broadcast_buffers")
+        return DistributedDataParallel(model, device_ids=ids, **{quiet: False})
 
     def _comm_device(self) -> torch.device:
         return self.device if self.device.type == "cuda" else torch.device("cpu")
@@ -231,7 +241,7 @@ def launch(nproc: int, argv: list[str], grace: float = 60.0) -> int:
             procs.append(subprocess.Popen([sys.executable, "-m", "odmo_cli", "train", *argv],
                                           env={**env, "RANK": str(rank), "LOCAL_RANK": str(rank)},
                                           stdout=out, stderr=out, start_new_session=True))
-        while any(p.poll() is None for p in procs):
+        while [p.poll() for p in procs].count(None):  # poll every process: any() would stop at the first alive
             time.sleep(0.1)
             if len(interrupts) > forwarded:  # each Ctrl-C once to every process
                 forwarded = len(interrupts)

@@ -52,7 +52,7 @@ from odmo_cli.data.dataset import split_indices
 from odmo_cli.data.readers import ClipSet
 from odmo_cli.device import generator
 from odmo_cli.errors import TrainingError, UserError
-from odmo_cli.training.distributed import PEER_ERRORS, Group
+from odmo_cli.training.distributed import Group, peer_lost
 
 Progress = Callable[[dict], None]  # called after every epoch with that epoch's log (a dict)
 
@@ -259,15 +259,16 @@ class Trainer:
         except KeyboardInterrupt:
             self._keep_snapshot()
             raise
-        except PEER_ERRORS as exc:
-            self._keep_snapshot()
-            why = (str(exc).strip().splitlines() or ["no reason given"])[0]
-            kept = f"epoch {self._snapshot['epoch']} is kept in {self.out}" if self._snapshot else "nothing was saved"
-            raise TrainingError(f"another training process stopped ({why}); {kept}") from None
         except TrainingError as exc:
             kept = (f"the last good checkpoint (epoch {self._saved_epoch}) is kept at {self.out}"
                     if self._saved_epoch is not None else f"no checkpoint was written to {self.out}")
             raise TrainingError(f"{exc}; {kept}") from None
+        except Exception as exc:
+            if not (self.group.distributed and peer_lost(exc)):
+                raise
+            self._keep_snapshot()
+            kept = f"epoch {self._snapshot['epoch']} is kept in {self.out}" if self._snapshot else "nothing was saved"
+            raise TrainingError(f"another training process stopped; {kept}") from None
         return self.history
 
     def _keep_snapshot(self) -> None:
