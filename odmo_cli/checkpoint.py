@@ -17,6 +17,7 @@ and `load_model`, which turns any generator checkpoint into a ready model.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -37,9 +38,28 @@ FORMAT_VERSION = 1  # bump when a reader of the old format would misread a new f
 # -- reading and writing -------------------------------------------------------------------------
 
 def save_checkpoint(path: str | Path, payload: dict) -> None:
-    """Write a checkpoint atomically. The payload must hold only tensors and plain values."""
+    """Write a checkpoint atomically. The payload must hold only tensors and plain values; tensors
+    on a GPU are written as CPU tensors, so every file loads on any machine."""
     with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
+        torch.save(cpu_tensors(payload), tmp)
+
+
+def cpu_tensors(value):
+    """`value` with every tensor inside (dicts, lists, tuples) on the CPU. What holds no tensor off
+    the CPU is returned as the same object, so a CPU run's payload is exactly what it was."""
+    if isinstance(value, torch.Tensor):
+        return value.detach().cpu() if value.device.type != "cpu" else value
+    if isinstance(value, dict):
+        moved = {k: cpu_tensors(v) for k, v in value.items()}
+        if all(moved[k] is v for k, v in value.items()):
+            return value
+        out = copy.copy(value)  # the same type, and a state dict's _metadata with it
+        out.update(moved)
+        return out
+    if isinstance(value, (list, tuple)):
+        moved = [cpu_tensors(v) for v in value]
+        return value if all(m is v for m, v in zip(moved, value)) else type(value)(moved)
+    return value
 
 
 def load_checkpoint(path: str | Path) -> dict:
@@ -106,15 +126,20 @@ def rng_state(np_rng: np.random.Generator, torch_gen: torch.Generator) -> dict:
             "torch": torch_gen.get_state(), "torch_global": torch.get_rng_state()}
 
 
-def restore_rng(state: dict, np_rng: np.random.Generator, torch_gen: torch.Generator) -> None:
-    """Put the streams back where rng_state found them (files without the global state keep it)."""
+def restore_rng(state: dict, np_rng: np.random.Generator, torch_gen: torch.Generator) -> bool:
+    """Put the streams back where rng_state found them (files without the global state keep it).
+    False when torch_gen's state was saved from a generator on another kind of device (a CPU
+    generator's state does not fit a GPU's): torch_gen is then left as it is."""
     d = state["numpy"]
     np_rng.bit_generator.state = {"bit_generator": d["bit_generator"],
                                   "state": {"state": int(d["state"]), "inc": int(d["inc"])},
                                   "has_uint32": d["has_uint32"], "uinteger": d["uinteger"]}
-    torch_gen.set_state(state["torch"])
     if "torch_global" in state:
         torch.set_rng_state(state["torch_global"])
+    if state["torch"].numel() != torch_gen.get_state().numel():
+        return False
+    torch_gen.set_state(state["torch"])
+    return True
 
 
 def float_state(ckpt: dict) -> dict:
@@ -228,31 +253,34 @@ class LoadedBaseline(Loaded):
     kind: str = ""
 
 
-def load_model(spec: str | Path | None) -> LoadedODMO | LoadedBaseline:
-    """Any generator checkpoint (path or shipped short name; None: the default), ready to sample."""
+def load_model(spec: str | Path | None, device: torch.device | None = None) -> LoadedODMO | LoadedBaseline:
+    """Any generator checkpoint (path or shipped short name; None: the default), ready to sample
+    on `device` (None: the CPU)."""
     path = checkpoint_path(spec)
     ckpt = load_checkpoint(path)
     kind = ckpt.get("kind")
     if kind == "odmo":
-        return _odmo_from(path, ckpt)
+        return _odmo_from(path, ckpt, device)
     if kind not in BASELINES:
         raise UserError(f"{path} holds a {kind!r} model; generators are: odmo, {', '.join(BASELINES)}")
     model = BASELINES[kind](ckpt)
     model.eval()
+    if device is not None:
+        model.to(device)
     return LoadedBaseline(model, ckpt["dataset"], str(path), kind)
 
 
-def load_odmo(spec: str | Path | None) -> LoadedODMO:
-    """An ODMO checkpoint (path or shipped short name; None: the default)."""
+def load_odmo(spec: str | Path | None, device: torch.device | None = None) -> LoadedODMO:
+    """An ODMO checkpoint (path or shipped short name; None: the default), on `device` (None: CPU)."""
     path = checkpoint_path(spec)
     ckpt = load_checkpoint(path)
     if ckpt.get("kind") != "odmo":
         raise UserError(f"{path} holds a {ckpt.get('kind')!r} model; this command needs an ODMO checkpoint "
                         "(modes, latent codes and end points are ODMO's)")
-    return _odmo_from(path, ckpt)
+    return _odmo_from(path, ckpt, device)
 
 
-def _odmo_from(path: Path, ckpt: dict) -> LoadedODMO:
+def _odmo_from(path: Path, ckpt: dict, device: torch.device | None = None) -> LoadedODMO:
     if "latent_bank" not in ckpt:
         raise UserError(f"{path} has no latent bank: its training did not finish (resume it to the end)")
     with torch.device("meta"):  # no random initialisation: every weight comes from the file
@@ -260,5 +288,7 @@ def _odmo_from(path: Path, ckpt: dict) -> LoadedODMO:
     state = {k: v.float() if v.is_floating_point() else v for k, v in float_state(ckpt).items()}
     model.load_state_dict(state, assign=True)
     model.eval()
+    if device is not None:
+        model.to(device)
     modes = ckpt.get("modes") or fit_modes(ckpt["latent_bank"], model.cfg.n_classes)
     return LoadedODMO(model, ckpt["dataset"], str(path), ckpt["latent_bank"], modes)

@@ -14,6 +14,7 @@ import torch
 
 from odmo_cli.data.dataset import MotionDataset
 from odmo_cli.data.readers import ClipSet
+from odmo_cli.device import model_device
 
 
 @torch.no_grad()
@@ -21,11 +22,12 @@ def latent_bank(model, clips: ClipSet, idx: np.ndarray, batch: int = 512) -> dic
     """Codes of the canonical crop (first T frames) of clips[idx] -> plain-value dict of tensors."""
     model.eval()
     data = MotionDataset(clips, model.cfg.length, random_crop=False)
+    dev = model_device(model)
     codes, ends = [], []
     for b in range(0, len(idx), batch):
         motion, _ = data.batch(idx[b:b + batch])
-        mu, _ = model.encode(motion)
-        codes.append(mu)
+        mu, _ = model.encode(motion.to(dev))
+        codes.append(mu.cpu())
         ends.append(motion[:, -1, 0])
     return {
         "codes": torch.cat(codes),  # (N, D)

@@ -79,6 +79,7 @@ class _TrainGroup(_Group):
     def parse_args(self, ctx, args):
         if not args or (args[0].startswith("-") and args[0] not in ("-h", "--help")):
             args = ["odmo", *args]
+        ctx.meta["odmo.train_argv"] = list(args)  # what `--nproc N` passes on to each process
         return super().parse_args(ctx, args)
 
 
@@ -120,6 +121,17 @@ ModelOpt = Annotated[Optional[str], typer.Option(
     "--model", help="Checkpoint path, or a shipped model: humanact12 (default), cmu.")]
 OutOpt = Annotated[Path, typer.Option("--out", help="Samples file to write (.npz).")]
 EndOpt = Annotated[Optional[str], typer.Option("--end", help="End point: x,z (ground plane) or x,y,z.")]
+DeviceOpt = Annotated[str, typer.Option("--device", help="Where to compute: auto (the best present: CUDA, else MPS, "
+                                                         "else CPU), cpu (the default), cuda, cuda:N or mps.")]
+
+
+def device_for(spec: str):
+    """--device's value checked before any work: an absent device is one line and exit 2."""
+    from odmo_cli.device import resolve_device
+
+    return resolve_device(spec)
+
+
 UpOpt = Annotated[str, typer.Option("--up", help="Frame of the positions written: dataset (its own axes, as evaluation "
                                               "expects) or y (turned y-up).")]
 

@@ -8,7 +8,8 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from odmo_cli.cli.common import Command, DataOpt, JsonOpt, ModelOpt, SeedOpt, WideOpt, app, console, err_console, print_json
+from odmo_cli.cli.common import (Command, DataOpt, DeviceOpt, JsonOpt, ModelOpt, SeedOpt, WideOpt, app, console, device_for,
+                                 err_console, print_json)
 from odmo_cli.errors import UserError
 
 
@@ -32,20 +33,22 @@ def evaluate(
     held_out: Annotated[bool, typer.Option("--held-out", help="Also a row for the real clips the classifier never trained on (odmo classifiers).", metavar="")] = False,
     by_action: Annotated[bool, typer.Option("--by-action", help="Also print each row's accuracy, speed and amplitude ratios per action.", metavar="")] = False,
     out: Annotated[Optional[Path], typer.Option("--out", help="Also write the full report (every repeat) as JSON here.")] = None,
-    data: DataOpt = None, seed: SeedOpt = 0, as_json: JsonOpt = False, wide: WideOpt = False,
+    data: DataOpt = None, device: DeviceOpt = "cpu", seed: SeedOpt = 0, as_json: JsonOpt = False,
+    wide: WideOpt = False,
 ):
     """The evaluation protocol: Acc, FID, Diversity, Multimodality, n-APD, bone std, and the speed and
     amplitude of the body's motion over the real motions' (mean ± 95% CI)."""
     from odmo_cli.evaluation.protocol import EvalConfig, run_evaluation
     from odmo_cli.io import atomic_path
 
+    dev = device_for(device)
     cfg = EvalConfig(repeats=repeats, per_action=per_action, sampling=sampling, seed=seed)
     others = list(compare or []) + list(checkpoints or [])
     # the shipped default joins only when nothing else is named: `--compare a.pt b.pt` is a table of a and b
     models = ([model] if model or not (samples or others) else []) + others
     with err_console.status("evaluating ..."):
         report = run_evaluation(models, dataset, data, classifier, cfg, list(samples or []), customization,
-                                held_out=held_out)
+                                held_out=held_out, device=dev)
     if out is not None:
         import json
 
@@ -115,9 +118,9 @@ def bench(
     only: Annotated[Optional[list[str]], typer.Option("--only", help="A part to run (repeatable): sampling, end-to-end, training, evaluation.")] = None,
     peer: Annotated[Optional[Path], typer.Option("--peer", help="The authors' networks' timer, bench_peer.py (default: ../shared/peer/bench_peer.py when it exists); its figures join the table, measured in the same run.")] = None,
     out: Annotated[Optional[Path], typer.Option("--out", help="Also write the figures as JSON here.")] = None,
-    as_json: JsonOpt = False, wide: WideOpt = False,
+    device: DeviceOpt = "cpu", as_json: JsonOpt = False, wide: WideOpt = False,
 ):
-    """Speed and memory on this machine (median, min and max of several runs)."""
+    """Speed and memory on this machine, on one device (median, min and max of several runs)."""
     from odmo_cli.evaluation.bench import run_bench
     from odmo_cli.io import atomic_path
 
@@ -126,9 +129,10 @@ def bench(
         raise UserError(f"unknown benchmark part {bad[0]!r}; valid: {', '.join(BENCH_PARTS)}")
     if runs <= 0:
         raise UserError(f"--runs must be positive, got {runs}")
+    dev = device_for(device)
     with err_console.status("benchmarking ...") as status:
         report = run_bench(model, data, runs, tuple(only or ()), lambda part: status.update(f"benchmarking {part} ..."),
-                           peer)
+                           peer, dev)
     m = report.machine
     payload = {"machine": m, "figures": [f.to_json() for f in report.figures], "skipped": report.skipped}
     if out is not None:
@@ -138,7 +142,8 @@ def bench(
             tmp.write_text(json.dumps(payload, indent=2))
     if as_json:
         return print_json(payload)
-    table = Table(title=f"odmo bench: {m['cpu']}, {m['cores']} cores, torch {m['torch']} ({m['threads']} threads)")
+    table = Table(title=f"odmo bench on {m['device']}: {m['cpu']}, {m['cores']} cores, torch {m['torch']} "
+                        f"({m['threads']} threads)")
     columns = ("figure", "median", "min", "max", "unit", "runs", "note") if wide else ("figure", "median", "range", "unit")
     for col in columns:
         table.add_column(col, justify="right" if col in ("median", "min", "max", "runs", "range") else "left")

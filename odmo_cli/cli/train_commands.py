@@ -12,8 +12,8 @@ from typing import Annotated, Optional
 
 import typer
 
-from odmo_cli.cli.common import (Command, DataOpt, JsonOpt, SeedOpt, app, console, err_console, print_json, resolve_spec,
-                                 train_app)
+from odmo_cli.cli.common import (Command, DataOpt, DeviceOpt, JsonOpt, SeedOpt, app, console, device_for, err_console,
+                                 print_json, resolve_spec, train_app)
 from odmo_cli.errors import UserError
 
 ABLATIONS = ("es", "traj", "cons", "end-point")
@@ -25,6 +25,9 @@ CheckpointOpt = Annotated[Optional[int], typer.Option("--checkpoint-every", help
 ValOpt = Annotated[Optional[int], typer.Option("--val-every", help="Epochs between validations on the held-out clips (0: never).")]
 ResumeOpt = Annotated[Optional[Path], typer.Option("--resume", help="Checkpoint to continue from, exactly (its model and schedule are kept; --epochs may extend it).")]
 ThreadsOpt = Annotated[int, typer.Option("--threads", help="CPU threads for torch (0: torch's default).")]
+NprocOpt = Annotated[int, typer.Option("--nproc", help="Processes training together on this machine (data-parallel, "
+                                                     "the same global batch; with --device cuda one GPU each). "
+                                                     "Several machines: torchrun, see docs/training.md.")]
 
 
 def _out(out: Optional[Path], kind: str) -> Path:
@@ -32,6 +35,35 @@ def _out(out: Optional[Path], kind: str) -> Path:
 
 
 OutOpt = Annotated[Optional[Path], typer.Option("--out", help="Checkpoint to write (default: <model>.pt, e.g. odmo.pt).")]
+
+
+def _start(device: str, nproc: int) -> bool:
+    """Check --device before any work; with --nproc N > 1, run this very command as N processes
+    and exit with their status. Returns whether this process prints (rank 0 of a run)."""
+    from odmo_cli.training.distributed import env_rank, env_world_size, launch
+
+    device_for(device)
+    if nproc < 1:
+        raise UserError(f"--nproc must be at least 1, got {nproc}")
+    if nproc > 1:
+        if env_world_size() > 1:
+            raise UserError("--nproc does not apply inside a run of several processes (torchrun starts them)")
+        from typer._click.globals import get_current_context
+
+        raise typer.Exit(launch(nproc, _without_nproc(get_current_context().meta["odmo.train_argv"])))
+    return env_rank() == 0
+
+
+def _without_nproc(argv: list[str]) -> list[str]:
+    out, skip = [], False
+    for arg in argv:
+        if skip:
+            skip = False
+        elif arg == "--nproc":
+            skip = True
+        elif not arg.startswith("--nproc="):
+            out.append(arg)
+    return out
 
 
 def _given(**values) -> dict:
@@ -64,7 +96,7 @@ def train_odmo_cmd(
     energy_weight: Annotated[Optional[float], typer.Option("--energy-weight", help="Weight of L_energy, each joint's speed and amplitude about the root against the clip's (preset odmo: 2; 0: off, as in the paper and the release).")] = None,
     checkpoint_every: CheckpointOpt = None, val_every: ValOpt = None,
     out: OutOpt = None, resume: ResumeOpt = None, threads: ThreadsOpt = 0,
-    seed: SeedOpt = 0, as_json: JsonOpt = False,
+    device: DeviceOpt = "cpu", nproc: NprocOpt = 1, seed: SeedOpt = 0, as_json: JsonOpt = False,
 ):
     """Train ODMO (the default of `odmo train`); at the end the checkpoint gets its latent bank and modes."""
     from odmo_cli.models.odmo import PRESETS
@@ -96,9 +128,12 @@ def train_odmo_cmd(
                               val_every=val_every, same_class_fraction=same_class, tf_per=tf_per),
                      lr=lr, lr_final=lr if lr_final is None else lr_final, tf_epochs=tf_epochs,
                      seed=seed, threads=threads)
+    prints = _start(device, nproc)  # after the options' own checks, before any data is read
     clips = _clips(dataset, data)
-    with _epoch_bar(tc.epochs, as_json) as update, _interruptible(f"the last completed epoch is saved in {out}"):
-        result = train_odmo(clips, tc, out, overrides, resume, _log_progress(update, tc.val_every), preset)
+    with _epoch_bar(tc.epochs, as_json or not prints) as update, _interruptible(out, prints):
+        result = train_odmo(clips, tc, out, overrides, resume, _log_progress(update, tc.val_every), preset, device)
+    if not prints:
+        return
     if as_json:
         return _print_result(result)
     r = result.report
@@ -122,7 +157,7 @@ def train_classifier_cmd(
     lr_final: Annotated[Optional[float], typer.Option("--lr-final", help="Cosine decay of the rate to this value (default 1e-5; 0: constant).")] = None,
     checkpoint_every: CheckpointOpt = None,
     out: OutOpt = None, resume: ResumeOpt = None, threads: ThreadsOpt = 0,
-    seed: SeedOpt = 0, as_json: JsonOpt = False,
+    device: DeviceOpt = "cpu", nproc: NprocOpt = 1, seed: SeedOpt = 0, as_json: JsonOpt = False,
 ):
     """Train the action classifier that evaluation reads motions with, on real clips with a held-out split."""
     from odmo_cli.training.classifier import ClassifierTrainConfig, train_classifier
@@ -130,16 +165,19 @@ def train_classifier_cmd(
     out = _out(out, "classifier")
     tc = ClassifierTrainConfig(**_given(epochs=epochs, batch_size=batch_size, lr=lr, lr_final=lr_final,
                                         checkpoint_every=checkpoint_every), seed=seed, threads=threads)
+    prints = _start(device, nproc)  # after the options' own checks, before any data is read
     clips = _clips(dataset, data)
 
     def show(log: dict) -> None:
-        if log["epoch"] % 10 == 0 or log["epoch"] == tc.epochs:
+        if prints and (log["epoch"] % 10 == 0 or log["epoch"] == tc.epochs):
             err_console.print(f"epoch {log['epoch']}/{tc.epochs} loss {log['loss']:.3f} train acc "
                               f"{100 * log['train_accuracy']:.1f}% val acc {100 * log['val_accuracy']:.1f}%",
                               highlight=False)
 
-    with _interruptible(f"the last completed epoch is saved in {out}"):
-        report = train_classifier(clips, tc, out, None if as_json else show, resume)
+    with _interruptible(out, prints):
+        report = train_classifier(clips, tc, out, None if as_json else show, resume, device)
+    if not prints:
+        return
     if as_json:
         return print_json({"out": str(out), "report": report})
     console.print(f"wrote {out}: validation accuracy {100 * report['val_accuracy']:.2f}% on "
@@ -156,7 +194,7 @@ def train_a2m_cmd(
     lr: Annotated[Optional[float], typer.Option("--lr", help="Adam learning rate (default 2e-4, the paper's).")] = None,
     lr_final: LrFinalOpt = None, checkpoint_every: CheckpointOpt = None, val_every: ValOpt = None,
     out: OutOpt = None, resume: ResumeOpt = None, threads: ThreadsOpt = 0,
-    seed: SeedOpt = 0, as_json: JsonOpt = False,
+    device: DeviceOpt = "cpu", nproc: NprocOpt = 1, seed: SeedOpt = 0, as_json: JsonOpt = False,
 ):
     """Train the Action2Motion baseline (conditional temporal VAE, xyz or Lie output)."""
     from odmo_cli.models.a2m import REPRESENTATIONS
@@ -167,9 +205,12 @@ def train_a2m_cmd(
         raise UserError(f"unknown representation {representation!r}; valid: {', '.join(REPRESENTATIONS)}")
     tc = A2MTrainConfig(**_given(epochs=epochs, batch_size=batch_size, lr=lr, lr_final=lr_final,
                                  checkpoint_every=checkpoint_every, val_every=val_every), seed=seed, threads=threads)
+    prints = _start(device, nproc)  # after the options' own checks, before any data is read
     clips = _clips(dataset, data)
-    with _epoch_bar(tc.epochs, as_json) as update, _interruptible(f"the last completed epoch is saved in {out}"):
-        result = train_a2m(clips, tc, out, representation, resume, _log_progress(update, tc.val_every))
+    with _epoch_bar(tc.epochs, as_json or not prints) as update, _interruptible(out, prints):
+        result = train_a2m(clips, tc, out, representation, resume, _log_progress(update, tc.val_every), device=device)
+    if not prints:
+        return
     if as_json:
         return _print_result(result)
     r = result.report
@@ -189,7 +230,7 @@ def train_dvgan_cmd(
     n_critic: Annotated[Optional[int], typer.Option("--n-critic", help="Discriminator steps per generator step (default 10, the paper's).")] = None,
     checkpoint_every: CheckpointOpt = None,
     out: OutOpt = None, resume: ResumeOpt = None, threads: ThreadsOpt = 0,
-    seed: SeedOpt = 0, as_json: JsonOpt = False,
+    device: DeviceOpt = "cpu", nproc: NprocOpt = 1, seed: SeedOpt = 0, as_json: JsonOpt = False,
 ):
     """Train the DVGAN baseline (WGAN-GP conditioned on the action name, CNN or RNN generator)."""
     from odmo_cli.models.dvgan import GENERATORS
@@ -200,6 +241,7 @@ def train_dvgan_cmd(
         raise UserError(f"unknown DVGAN generator {generator!r}; valid: {', '.join(GENERATORS)}")
     tc = DVGANTrainConfig(**_given(epochs=epochs, batch_size=batch_size, lr=lr, lr_final=lr_final, n_critic=n_critic,
                                    checkpoint_every=checkpoint_every), seed=seed, threads=threads)
+    prints = _start(device, nproc)  # after the options' own checks, before any data is read
     clips = _clips(dataset, data)
 
     def show(update):
@@ -208,8 +250,10 @@ def train_dvgan_cmd(
             update(log["epoch"], info, log["epoch"] % 25 == 0 or log["epoch"] == tc.epochs)
         return progress
 
-    with _epoch_bar(tc.epochs, as_json) as update, _interruptible(f"the last completed epoch is saved in {out}"):
-        result = train_dvgan(clips, tc, out, generator, resume=resume, progress=show(update))
+    with _epoch_bar(tc.epochs, as_json or not prints) as update, _interruptible(out, prints):
+        result = train_dvgan(clips, tc, out, generator, resume=resume, progress=show(update), device=device)
+    if not prints:
+        return
     if as_json:
         return _print_result(result)
     r = result.report
@@ -222,12 +266,16 @@ def _print_result(result) -> None:
 
 
 @contextmanager
-def _interruptible(kept: str):
-    """Ctrl-C during training: say what was kept, exit 130 without a traceback."""
+def _interruptible(kept: str | Path, prints: bool = True):
+    """Ctrl-C during training: say what was kept (a checkpoint path: its last completed epoch; only
+    rank 0 of several processes says it), exit 130 without a traceback."""
+    if isinstance(kept, Path):
+        kept = f"the last completed epoch is saved in {kept}"
     try:
         yield
     except KeyboardInterrupt:
-        err_console.print(f"interrupted: {kept}")
+        if prints:
+            err_console.print(f"interrupted: {kept}")
         raise typer.Exit(130) from None
 
 

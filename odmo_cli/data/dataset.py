@@ -47,9 +47,17 @@ class MotionDataset(torch.utils.data.Dataset):
         start = random_start(len(motion), self.length, self.rng) if self.random_crop else 0
         return torch.from_numpy(crop_pad_shift(motion, self.length, start)), int(self.clips.labels[i])
 
-    def batch(self, index) -> tuple[torch.Tensor, torch.Tensor]:
-        """Many items at once: (B, T, J, 3) motions and (B,) labels."""
-        items = [self[int(i)] for i in index]
+    def batch(self, index, rows=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Many items at once: (B, T, J, 3) motions and (B,) labels. With `rows` (positions in
+        `index`), only those items are built, after drawing the crops of all of `index`: one
+        training process's share of a batch, with the stream where the whole batch leaves it."""
+        if rows is None:
+            items = [self[int(i)] for i in index]
+        else:
+            starts = [random_start(len(self.clips.motions[int(i)]), self.length, self.rng) if self.random_crop else 0
+                      for i in index]
+            items = [(torch.from_numpy(crop_pad_shift(self.clips.motions[int(index[r])], self.length, starts[r])),
+                      int(self.clips.labels[int(index[r])])) for r in rows]
         return torch.stack([m for m, _ in items]), torch.tensor([c for _, c in items], dtype=torch.long)
 
 

@@ -7,7 +7,9 @@ does after load beside the authors' bare networks making as many motions in the 
 s/epoch and clips/s on HumanAct12 and CMU MoCap with the arithmetic they imply (GFLOP per clip,
 GFLOP/s) beside this machine's float32 matrix-multiply rate, and the evaluation protocol's wall time.
 Without a trained model the generator figures use a randomly initialised network of the same
-shapes (speed does not depend on the weights) and say so.
+shapes (speed does not depend on the weights) and say so. The networks run on one device
+(`--device`; the report's machine names it): sampling, end to end, training, the matrix-multiply
+rate and the evaluation all use it.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from odmo_cli.device import describe, synchronize
 from odmo_cli.errors import UserError
 
 
@@ -49,8 +52,8 @@ class BenchReport:
     skipped: list[str] = field(default_factory=list)
 
 
-def machine() -> dict:
-    return {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
+def machine(device: torch.device = torch.device("cpu")) -> dict:
+    return {"device": describe(device), "cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
             "torch": torch.__version__, "threads": torch.get_num_threads(), "python": platform.python_version()}
 
 
@@ -91,12 +94,12 @@ def random_checkpoint(dataset: str, folder: Path) -> Path:
     return path
 
 
-def bench_sampling(model_path: Path, runs: int, note: str) -> list[Figure]:
+def bench_sampling(model_path: Path, runs: int, note: str, device: torch.device) -> list[Figure]:
     from odmo_cli.checkpoint import load_odmo
     from odmo_cli.generation.generate import sample
 
-    loads = _timed(lambda: load_odmo(model_path), runs)
-    loaded = load_odmo(model_path)
+    loads = _timed(lambda: load_odmo(model_path, device), runs)
+    loaded = load_odmo(model_path, device)
     per = max(1, 1000 // len(loaded.actions))
     n = per * len(loaded.actions)
     times = _timed(lambda: sample(loaded, ["all"], per, seed=0), runs)
@@ -130,14 +133,15 @@ def peer_sampling_rate(peer: Path, n: int, dataset: str) -> float:
         raise UserError(f"{peer} did not report a sampling rate (exit {proc.returncode}: {last})") from None
 
 
-def bench_sample_command(model_path: Path, runs: int, note: str, folder: Path, peer: Path | None) -> list[Figure]:
+def bench_sample_command(model_path: Path, runs: int, note: str, folder: Path, peer: Path | None,
+                         device: torch.device) -> list[Figure]:
     """What `odmo sample --action all --n N` does after loading (codes, end points, the networks,
     the file), N per action making at least 1000 motions; with `peer`, the authors' bare networks
     making as many motions, timed in the same run, interleaved run by run with ours."""
     from odmo_cli.checkpoint import load_model
     from odmo_cli.generation.generate import sample
 
-    loaded = load_model(model_path)
+    loaded = load_model(model_path, device)
     per = -(-1000 // len(loaded.actions))
     n = per * len(loaded.actions)
     out = folder / "all.npz"
@@ -168,18 +172,19 @@ def _cli(args: list[str]) -> list[str]:
     return [sys.executable, "-m", "odmo_cli", *args]
 
 
-def bench_end_to_end(model_path: Path, runs: int, note: str, folder: Path) -> list[Figure]:
+def bench_end_to_end(model_path: Path, runs: int, note: str, folder: Path, device: torch.device) -> list[Figure]:
     action = "--action"
     from odmo_cli.checkpoint import load_odmo
 
     first = load_odmo(model_path).actions[0]
-    cmd = _cli(["sample", "--model", str(model_path), action, first, "--n", "20", "--out", str(folder / "e2e.npz")])
+    cmd = _cli(["sample", "--model", str(model_path), action, first, "--n", "20", "--out", str(folder / "e2e.npz"),
+                "--device", str(device)])
     walls = _timed(lambda: subprocess.run(cmd, check=True, capture_output=True), runs)
     rss_cmd = [sys.executable, "-c",
                "import resource, subprocess, sys; subprocess.run(sys.argv[1:], check=True, capture_output=True);"
                "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)",
                *_cli(["sample", "--model", str(model_path), action, first, "--n", "10000",
-                      "--out", str(folder / "big.npz")])]
+                      "--out", str(folder / "big.npz"), "--device", str(device)])]
     rss = [int(subprocess.run(rss_cmd, check=True, capture_output=True, text=True).stdout.split()[-1]) / 1024
            for _ in range(max(1, runs // 2))]
     return [Figure("`odmo sample --n 20` end to end (fresh process)", "s", walls, note),
@@ -224,27 +229,34 @@ def count_flops(fn: Callable[[], object], root: torch.nn.Module) -> int:
     return counter.get_total_flops() + unseen[0]
 
 
-def matmul_rate(runs: int, n: int = 2048) -> list[float]:
-    """GFLOP/s of an n x n float32 matrix product: what this machine's cores sustain at best."""
-    a, b = torch.randn(n, n), torch.randn(n, n)
-    return [2 * n ** 3 / t / 1e9 for t in _timed(lambda: a @ b, runs)]
+def matmul_rate(runs: int, n: int = 2048, device: torch.device = torch.device("cpu")) -> list[float]:
+    """GFLOP/s of an n x n float32 matrix product: what the device sustains at best."""
+    a, b = torch.randn(n, n, device=device), torch.randn(n, n, device=device)
+
+    def product() -> None:
+        a @ b
+        synchronize(device)
+
+    return [2 * n ** 3 / t / 1e9 for t in _timed(product, runs)]
 
 
-def bench_training(dataset: str, data, runs: int) -> list[Figure]:
+def bench_training(dataset: str, data, runs: int, device: torch.device = torch.device("cpu")) -> list[Figure]:
     from odmo_cli.data.locate import resolve
     from odmo_cli.data.readers import read_dataset
+    from odmo_cli.training.distributed import Group
     from odmo_cli.training.odmo import ODMOTrainer, TrainConfig, model_config_for
 
     manifest, root = resolve(dataset, data)
     clips = read_dataset(root, manifest)
     tc = TrainConfig(epochs=runs + 1, batch_size=256, val_every=0, checkpoint_every=0, tf_start=0.65, tf_end=0.65)
     with tempfile.TemporaryDirectory() as tmp:
-        trainer = ODMOTrainer(clips, model_config_for(clips), tc, Path(tmp) / "bench.pt")
+        trainer = ODMOTrainer(clips, model_config_for(clips), tc, Path(tmp) / "bench.pt", Group(device))
         flops = count_flops(trainer.train_epoch, trainer.model)  # the warm-up epoch, not timed
         seconds, rates = [], []
         for _ in range(runs):
             start = time.perf_counter()
             clips_seen = trainer.train_epoch()["clips"]
+            synchronize(device)
             seconds.append(time.perf_counter() - start)
             rates.append(clips_seen / seconds[-1])
     note = f"{len(trainer.train_idx)} pairs per epoch, batch 256 pairs, teacher forcing 0.65 (mid-schedule)"
@@ -256,18 +268,20 @@ def bench_training(dataset: str, data, runs: int) -> list[Figure]:
             Figure(f"training arithmetic rate, {dataset}", "GFLOP/s", [flops / t / 1e9 for t in seconds], note)]
 
 
-def bench_evaluation(model: str | None, data, runs: int) -> list[Figure]:
+def bench_evaluation(model: str | None, data, runs: int, device: torch.device) -> list[Figure]:
     from odmo_cli.evaluation.protocol import EvalConfig, run_evaluation
 
-    times = _timed(lambda: run_evaluation([model], None, data, None, EvalConfig()), runs, warmup=0)
+    times = _timed(lambda: run_evaluation([model], None, data, None, EvalConfig(), device=device), runs, warmup=0)
     return [Figure("evaluation protocol (10 repeats, paper's samples per action)", "s", times)]
 
 
 def run_bench(model: str | None = None, data=None, runs: int = 5, only: tuple[str, ...] = (),
-              progress: Callable[[str], None] | None = None, peer: Path | None = None) -> BenchReport:
+              progress: Callable[[str], None] | None = None, peer: Path | None = None,
+              device: torch.device = torch.device("cpu")) -> BenchReport:
+    """Every figure asked for (`only`: some parts), measured with the networks on `device`."""
     from odmo_cli.checkpoint import checkpoint_path, shipped_file
 
-    report = BenchReport(machine())
+    report = BenchReport(machine(device))
     want = lambda part: not only or part in only  # noqa: E731
     say = progress or (lambda _: None)
     with tempfile.TemporaryDirectory() as tmp:
@@ -281,31 +295,31 @@ def run_bench(model: str | None = None, data=None, runs: int = 5, only: tuple[st
             path, note = random_checkpoint("humanact12", folder), "untrained network, HumanAct12 shapes"
         if want("sampling"):
             say("sampling")
-            report.figures += bench_sampling(path, runs, note)
+            report.figures += bench_sampling(path, runs, note, device)
             peer = peer or find_peer()
             if peer is None:
                 report.skipped.append("the authors' networks: no shared/peer/bench_peer.py beside the repository (--peer)")
             try:
-                report.figures += bench_sample_command(path, runs, note, folder, peer)
+                report.figures += bench_sample_command(path, runs, note, folder, peer, device)
             except UserError as exc:
                 report.skipped.append(f"the authors' networks: {exc}")
         if want("end-to-end"):
             say("end to end")
-            report.figures += bench_end_to_end(path, runs, note, folder)
+            report.figures += bench_end_to_end(path, runs, note, folder, device)
         if want("training"):
             say("matrix multiply")
-            report.figures.append(Figure("float32 matrix multiply (2048 x 2048)", "GFLOP/s", matmul_rate(runs),
-                                         "this machine's practical peak for the training figures"))
+            report.figures.append(Figure("float32 matrix multiply (2048 x 2048)", "GFLOP/s", matmul_rate(runs, device=device),
+                                         "the device's practical peak for the training figures"))
             for dataset in ("humanact12", "cmu_mocap"):
                 say(f"training {dataset}")
                 try:
-                    report.figures += bench_training(dataset, data, min(runs, 3))
+                    report.figures += bench_training(dataset, data, min(runs, 3), device)
                 except UserError as exc:
                     report.skipped.append(f"training {dataset}: {exc}")
         if want("evaluation"):
             say("evaluation")
             try:
-                report.figures += bench_evaluation(model, data, max(1, min(runs, 3)))
+                report.figures += bench_evaluation(model, data, max(1, min(runs, 3)), device)
             except UserError as exc:
                 report.skipped.append(f"evaluation: {exc}")
     return report

@@ -372,13 +372,14 @@ def samples_dataset(path: Path) -> str:
 
 def run_evaluation(models: list[str | None], dataset: str | None, data, classifier_path: str | None,
                    cfg: EvalConfig, samples: list[Path] = (), with_customization: bool = False,
-                   progress=None, held_out: bool = False) -> Report:
-    """Load everything once, compute real features once, evaluate every model (and samples file)."""
+                   progress=None, held_out: bool = False, device: torch.device | None = None) -> Report:
+    """Load everything once, compute real features once, evaluate every model (and samples file);
+    the networks (generators and classifier) run on `device` (None: the CPU)."""
     if cfg.sampling not in SAMPLING:
         raise UserError(f"unknown sampling {cfg.sampling!r}; valid: {', '.join(SAMPLING)}")
     start = time.perf_counter()
     specs = [model_spec(m) for m in (models or ([] if samples else [None]))]
-    loaded = [load_model(path) for path, _ in specs]
+    loaded = [load_model(path, device) for path, _ in specs]
     name = dataset or (loaded[0].dataset["name"] if loaded else samples_dataset(Path(samples[0])))
     manifest, root = resolve(name, data)
     for m in loaded:
@@ -389,6 +390,8 @@ def run_evaluation(models: list[str | None], dataset: str | None, data, classifi
         raise UserError(f"no classifier for {manifest.name}: pass --classifier (e.g. one trained with "
                         f"`odmo train classifier --dataset {manifest.name}`)")
     classifier = load_classifier(clf_path)
+    if device is not None:
+        classifier.to(device)
     check_matches(classifier, manifest)
     for path in samples:  # every samples file is checked before the slow part
         read_samples_for(Path(path), classifier, manifest)

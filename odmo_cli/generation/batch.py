@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from odmo_cli.checkpoint import LoadedODMO, model_name
+from odmo_cli.device import model_device
 from odmo_cli.formats.samples import write_samples
 from odmo_cli.io import StreamedArray
 
@@ -93,12 +94,12 @@ class MotionBatch:
 def decode(loaded: LoadedODMO, codes: np.ndarray, labels: np.ndarray, end_points: np.ndarray,
            batch: int = DECODE_BATCH) -> np.ndarray:
     """Codes (N, D), labels (N,), end points (N, 3) -> motions (N, T, J, 3), batch by batch."""
-    cfg = loaded.model.cfg
+    cfg, dev = loaded.model.cfg, model_device(loaded.model)
     out = np.empty((len(codes), cfg.length, cfg.n_joints, 3), dtype=np.float32)
     for b in range(0, len(codes), batch):
-        z = torch.from_numpy(np.ascontiguousarray(codes[b:b + batch], dtype=np.float32))
-        lab = torch.from_numpy(np.asarray(labels[b:b + batch], dtype=np.int64))
-        end = torch.from_numpy(np.ascontiguousarray(end_points[b:b + batch], dtype=np.float32))
+        z = torch.from_numpy(np.ascontiguousarray(codes[b:b + batch], dtype=np.float32)).to(dev)
+        lab = torch.from_numpy(np.asarray(labels[b:b + batch], dtype=np.int64)).to(dev)
+        end = torch.from_numpy(np.ascontiguousarray(end_points[b:b + batch], dtype=np.float32)).to(dev)
         _, motion = loaded.model.decode(z, lab, end)
-        out[b:b + batch] = motion.numpy()
+        out[b:b + batch] = motion.cpu().numpy()
     return out

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from odmo_cli.checkpoint import SAMPLING, LoadedBaseline, LoadedODMO, load_checkpoint, save_checkpoint
+from odmo_cli.device import generator, model_device
 from odmo_cli.errors import UserError
 from odmo_cli.generation.batch import MotionBatch, decode
 from odmo_cli.geometry.skeletons import get_skeleton
@@ -118,11 +119,12 @@ def sample_baseline(loaded: LoadedBaseline, actions: list[str], n: int, seed: in
                     batch: int = 1000) -> MotionBatch:
     """n motions per action from a baseline's noise, decoded in batches from one seeded generator."""
     labels = np.repeat(np.asarray(loaded.action_indices(actions), dtype=np.int64), n)  # (N,)
-    gen = torch.Generator().manual_seed(seed)
+    dev = model_device(loaded.model)
+    gen = generator(dev, seed)  # on a GPU its own stream: other motions than the CPU's for a seed
     cfg = loaded.model.cfg
     motions = np.empty((len(labels), cfg.length, cfg.n_joints, 3), dtype=np.float32)
     for b in range(0, len(labels), batch):
-        motions[b:b + batch] = loaded.model.generate(torch.from_numpy(labels[b:b + batch]), gen).numpy()
+        motions[b:b + batch] = loaded.model.generate(torch.from_numpy(labels[b:b + batch]).to(dev), gen).cpu().numpy()
     return MotionBatch(motions, np.array(loaded.actions)[labels], np.full(len(labels), -1),
                        np.zeros((len(labels), 0), dtype=np.float32), np.full((len(labels), 3), np.nan, np.float32),
                        loaded.dataset, loaded.source, seed, labels=labels)
@@ -228,9 +230,10 @@ def complete(loaded: LoadedODMO | LoadedBaseline, prefix: np.ndarray, frames: in
         raise UserError(f"the prefix has {len(prefix)} frames; --frames {frames} needs at least {frames}")
     given = prefix[:frames] - prefix[:1, :1]  # (frames, J, 3), first root at the origin
     labels = np.repeat(np.asarray(loaded.action_indices(actions), dtype=np.int64), n)  # (N,)
-    gen = torch.Generator().manual_seed(seed)
-    start = torch.from_numpy(given)[None].expand(len(labels), -1, -1, -1)  # (N, frames, J, 3)
-    motions = loaded.model.complete(start, torch.from_numpy(labels), gen).numpy()
+    dev = model_device(loaded.model)
+    gen = generator(dev, seed)
+    start = torch.from_numpy(given)[None].expand(len(labels), -1, -1, -1).to(dev)  # (N, frames, J, 3)
+    motions = loaded.model.complete(start, torch.from_numpy(labels).to(dev), gen).cpu().numpy()
     return MotionBatch(motions, np.array(loaded.actions)[labels], np.full(len(labels), -1),
                        np.zeros((len(labels), 0), dtype=np.float32), np.full((len(labels), 3), np.nan, np.float32),
                        loaded.dataset, loaded.source, seed, extra={"prefix_frames": np.int64(frames)},

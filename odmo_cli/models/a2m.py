@@ -147,26 +147,28 @@ class A2M(nn.Module):
         counter = onehot.new_full((len(labels), 1), (t + 1) / self.cfg.length)  # c_t = t / T, t = 1..T
         return torch.cat([onehot, counter], 1)
 
-    def _start(self, n: int):
-        zeros = torch.zeros(n, self.cfg.hidden)
+    def _start(self, n: int, device: torch.device):
+        zeros = torch.zeros(n, self.cfg.hidden, device=device)
         # p_0 is a zero vector (§3.2.3)
-        return torch.zeros(n, self.cfg.pose_dim), zeros, zeros, [zeros] * self.cfg.gen_layers
+        return torch.zeros(n, self.cfg.pose_dim, device=device), zeros, zeros, [zeros] * self.cfg.gen_layers
 
     def forward(self, poses: torch.Tensor, labels: torch.Tensor, teacher: torch.Tensor,
-                generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
-        """Training pass, eq. (7)-(8): poses (B, T, D), labels (B,), teacher (B,) bool.
+                generator: torch.Generator | None = None, noise: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """Training pass, eq. (7)-(8): poses (B, T, D), labels (B,), teacher (B,) bool; the
+        posterior's noise is `noise` (T, B, Z) if given, else drawn from `generator` step by step.
 
         A teacher-forced sequence feeds the real p_t-1 to prior and generator, the others their
         own previous output (the paper's choice per sequence, not per frame).
         """
         B, T, _ = poses.shape
-        prev, h_q, h_p, h_g = self._start(B)
+        prev, h_q, h_p, h_g = self._start(B, poses.device)
         preds, kls = [], []
         for t in range(T):
             cond = self._condition(labels, t)
             mu_q, logvar_q, h_q = self.posterior(torch.cat([poses[:, t], cond], 1), h_q)
             mu_p, logvar_p, h_p = self.prior(torch.cat([prev, cond], 1), h_p)
-            z = mu_q + (0.5 * logvar_q).exp() * torch.randn(mu_q.shape, generator=generator)
+            eps = noise[t] if noise is not None else torch.randn(mu_q.shape, generator=generator, device=mu_q.device)
+            z = mu_q + (0.5 * logvar_q).exp() * eps
             pred, h_g = self.generator(torch.cat([prev, cond, z], 1), h_g)  # (B, D)
             prev = torch.where(teacher[:, None], poses[:, t], pred)
             preds.append(pred)
@@ -176,14 +178,14 @@ class A2M(nn.Module):
     @torch.no_grad()
     def generate(self, labels: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         """Labels (N,) -> motions (N, T, J, 3), z_t from the learned prior, first root at the origin."""
-        n = len(labels)
-        bones = self.bone_bank[torch.randint(len(self.bone_bank), (n,), generator=generator)]  # (N, J)
-        prev, _, h_p, h_g = self._start(n)
+        n, dev = len(labels), labels.device
+        bones = self.bone_bank[torch.randint(len(self.bone_bank), (n,), generator=generator, device=dev)]  # (N, J)
+        prev, _, h_p, h_g = self._start(n, dev)
         preds = []
         for t in range(self.cfg.length):
             cond = self._condition(labels, t)
             mu_p, logvar_p, h_p = self.prior(torch.cat([prev, cond], 1), h_p)
-            z = mu_p + (0.5 * logvar_p).exp() * torch.randn(mu_p.shape, generator=generator)
+            z = mu_p + (0.5 * logvar_p).exp() * torch.randn(mu_p.shape, generator=generator, device=dev)
             prev, h_g = self.generator(torch.cat([prev, cond, z], 1), h_g)
             preds.append(prev)
         motion = self.positions(torch.stack(preds, 1), bones)  # (N, T, J, 3)
@@ -206,13 +208,15 @@ def fold_root(lie: torch.Tensor, parents) -> torch.Tensor:
 
 
 def a2m_terms(model: A2M, motion: torch.Tensor, labels: torch.Tensor, teacher: torch.Tensor,
-              lambda_kl: float, generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
-    """Eq. (9) on a batch of real motions (B, T, J, 3).
+              lambda_kl: float, generator: torch.Generator | None = None, noise: torch.Tensor | None = None,
+              net: torch.nn.Module | None = None) -> dict[str, torch.Tensor]:
+    """Eq. (9) on a batch of real motions (B, T, J, 3); the forward pass runs through `net` (the
+    model wrapped for several processes) when given, with the noise of A2M.forward.
 
     mse: squared joint-position error per coordinate, kl: KL per clip; both per frame. loss
     sums them over the T frames as the paper does: T * (mse + lambda * kl).
     """
-    out = model(model.pose_vectors(motion), labels, teacher, generator)
+    out = (net or model)(model.pose_vectors(motion), labels, teacher, generator, noise)
     lengths = bone_lengths_from_pose(motion, model.sk)  # (B, T, J): FK then reproduces the real bones
     recon = model.positions(out["poses"], lengths)
     mse = ((recon - motion) ** 2).mean()

@@ -218,16 +218,16 @@ class Discriminator(nn.Module):
 
 def final_cut(tape: torch.Tensor, length: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, S, F) tape -> ((B, length, F) window, (B,) starts), each start uniform in [0, S - length]."""
-    starts = torch.randint(0, tape.shape[1] - length + 1, (len(tape),), generator=generator)
-    idx = starts[:, None] + torch.arange(length)  # (B, length)
+    starts = torch.randint(0, tape.shape[1] - length + 1, (len(tape),), generator=generator, device=tape.device)
+    idx = starts[:, None] + torch.arange(length, device=tape.device)  # (B, length)
     return tape.gather(1, idx[:, :, None].expand(-1, -1, tape.shape[2])), starts
 
 
 def temporal_shift(x: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
     """Shift each (T, F) sequence by a uniform s in [-T//2, T//2] frames, zeros where nothing is known."""
     b, t, f = x.shape
-    shifts = torch.randint(-(t // 2), t // 2 + 1, (b, 1), generator=generator)
-    src = torch.arange(t)[None, :] - shifts  # (B, T): out[t] = x[t - s]
+    shifts = torch.randint(-(t // 2), t // 2 + 1, (b, 1), generator=generator, device=x.device)
+    src = torch.arange(t, device=x.device)[None, :] - shifts  # (B, T): out[t] = x[t - s]
     valid = (src >= 0) & (src < t)
     out = x.gather(1, src.clamp(0, t - 1)[:, :, None].expand(-1, -1, f))
     return out * valid[:, :, None].to(x.dtype)
@@ -239,7 +239,7 @@ def gradient_penalty(critic, real: torch.Tensor, fake: torch.Tensor, generator: 
 
     critic: (B, ...) -> (B,). The graph is kept so the penalty trains the critic.
     """
-    eps = torch.rand((len(real),) + (1,) * (real.dim() - 1), generator=generator, dtype=real.dtype)
+    eps = torch.rand((len(real),) + (1,) * (real.dim() - 1), generator=generator, dtype=real.dtype, device=real.device)
     x_hat = (eps * real + (1 - eps) * fake).requires_grad_(True)
     grad, = torch.autograd.grad(critic(x_hat).sum(), x_hat, create_graph=True)
     return lam * ((grad.flatten(1).norm(dim=1) - 1) ** 2).mean()

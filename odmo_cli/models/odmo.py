@@ -227,10 +227,12 @@ class ODMO(nn.Module):
         return trajectory, motion.view(*motion.shape[:2], self.cfg.n_joints, 3)
 
     def forward(self, motion: torch.Tensor, labels: torch.Tensor, generator: torch.Generator | None = None,
-                teacher: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-        """Reconstruct a batch: encode its LMP, sample z, decode with the real end point."""
+                teacher: torch.Tensor | None = None, eps: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """Reconstruct a batch: encode its LMP, sample z (noise `eps` (B, D), else drawn from
+        `generator`), decode with the real end point."""
         mu, logvar = self.encode(motion)
-        eps = torch.randn(mu.shape, generator=generator, dtype=mu.dtype, device=mu.device)
+        if eps is None:
+            eps = torch.randn(mu.shape, generator=generator, dtype=mu.dtype, device=mu.device)
         z = mu + eps * torch.exp(0.5 * logvar)
         trajectory, recon = self.decode(z, labels, motion[:, -1, 0], target=motion, teacher=teacher)
         return {"mu": mu, "logvar": logvar, "z": z, "trajectory": trajectory, "motion": recon}

@@ -21,6 +21,9 @@ Hand-made features with an RBF SVM reach about 91% on the same split.
 Random playback speed is off by default since 2026-12-01: it taught the classifier that a slowed-down
 motion is still the same action, so damped generated motion passed (docs/evaluation.md). Without it
 the shipped recipes reach 86.1% (HumanAct12) and 90.3% (CMU-7).
+
+On several processes every rank prepares the epoch's augmented crops (one numpy stream) and
+computes its share of each batch (training/distributed.py).
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from odmo_cli.data.readers import ClipSet
 from odmo_cli.errors import UserError
 from odmo_cli.models.classifier import ClassifierConfig, MotionClassifier, config_for
 from odmo_cli.parallel import thread_count
+from odmo_cli.training.distributed import training_group
 from odmo_cli.training.loop import LoopConfig, Progress, Trainer
 
 SAMPLINGS = ("shuffle", "balanced", "length")
@@ -207,20 +211,26 @@ class ClassifierTrainer(Trainer):
             x = x + rng.normal(0.0, tc.noise, size=x.shape).astype(np.float32)
         x = torch.from_numpy(x)
         y = torch.from_numpy(labels[order])
-        loss_sum, correct = 0.0, 0
+        sums = {"loss": 0.0, "correct": 0.0}
         for b in range(0, len(order), tc.batch_size):
             xb, yb = x[b:b + tc.batch_size], y[b:b + tc.batch_size]
-            logits = model(xb)
+            rows, weight = self.group.share(len(yb))
+            if self.group.distributed:
+                xb, yb = xb[rows], yb[rows]
+            xb, yb = xb.to(self.device), yb.to(self.device)
+            logits = self.net(xb)
             loss = nn.functional.cross_entropy(logits, yb)
             self.check_finite(loss)
             opt.zero_grad(set_to_none=True)
-            loss.backward()
+            (loss if weight == 1 else loss * weight).backward()
             if tc.grad_clip > 0:
                 nn.utils.clip_grad_norm_(model.parameters(), tc.grad_clip)
             opt.step()
-            loss_sum += float(loss.detach()) * len(yb)
-            correct += int((logits.detach().argmax(1) == yb).sum())
-        return {"clips": len(order), "loss": loss_sum / len(order), "train_accuracy": correct / len(order)}
+            if weight:
+                sums["loss"] += float(loss.detach()) * len(yb)
+                sums["correct"] += int((logits.detach().argmax(1) == yb).sum())
+        sums = self.group.sum(sums)
+        return {"clips": len(order), "loss": sums["loss"] / len(order), "train_accuracy": sums["correct"] / len(order)}
 
     def validate(self) -> dict[str, float]:
         return {"accuracy": accuracy(self.model, self.val_x, self.val_y)}
@@ -244,17 +254,19 @@ class ClassifierTrainer(Trainer):
 
 
 def train_classifier(clips: ClipSet, tc: ClassifierTrainConfig, out: str | Path,
-                     progress: Progress | None = None, resume: str | Path | None = None) -> dict:
+                     progress: Progress | None = None, resume: str | Path | None = None,
+                     device: str = "cpu") -> dict:
     """Train the dataset's classifier on real clips (or resume a checkpoint); write the checkpoint
-    `out` with its report; return the report. The same seed gives the same weights."""
+    `out` with its report; return the report. The same seed gives the same weights. `device`: as
+    train_odmo's."""
     if len(clips) == 0:
         raise UserError("no clips to train the classifier on")
-    with thread_count(tc.threads):
+    with thread_count(tc.threads), training_group(device) as group:
         if resume is not None:
-            trainer = ClassifierTrainer.resumed(resume, clips, tc, out)
+            trainer = ClassifierTrainer.resumed(resume, clips, tc, out, group)
         else:
             cfg = config_for(clips.manifest, hidden=tc.hidden or None, layers=tc.layers or None)
-            trainer = ClassifierTrainer(clips, cfg, tc, out)
+            trainer = ClassifierTrainer(clips, cfg, tc, out, group)
         trainer.run(progress)
         report = trainer.report()
         trainer.save({"report": report})

@@ -21,15 +21,23 @@ What the loop guarantees for every model:
 - The learning rate of every optimizer follows tc.learning_rate(epoch) (cosine from lr to
   lr_final, or constant).
 
-Issue #25 (devices, data-parallel training) plugs in here: `device`, `rank` and `world_size`
-are attributes, and only the writer (rank 0) writes checkpoints (`is_writer`).
+Devices and processes (training/distributed.py): a trainer gets a `Group` (device, rank,
+world_size; default one CPU process, which computes exactly as before). The model is built on
+the CPU from the seed, then moved to the device; `self.net` is what forward passes run through
+(DistributedDataParallel on several processes); `self.group.share(n)` is this rank's rows of a
+batch of n. Only the writer (rank 0) writes checkpoints (`is_writer`), always with CPU tensors.
+When another process of the run stops, the collective that waited on it fails: the writer keeps
+the last completed epoch, as for Ctrl-C.
 """
 
 from __future__ import annotations
 
 import copy
 import math
+import signal
+import threading
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
@@ -37,12 +45,14 @@ from typing import Callable
 import numpy as np
 import torch
 
-from odmo_cli.checkpoint import (FORMAT_VERSION, dataset_description, load_checkpoint, restore_rng, rng_state,
-                                 save_checkpoint)
+from odmo_cli.checkpoint import (FORMAT_VERSION, cpu_tensors, dataset_description, load_checkpoint, restore_rng,
+                                 rng_state, save_checkpoint)
 from odmo_cli.config import Config
 from odmo_cli.data.dataset import split_indices
 from odmo_cli.data.readers import ClipSet
+from odmo_cli.device import generator
 from odmo_cli.errors import TrainingError, UserError
+from odmo_cli.training.distributed import Group, peer_lost
 
 Progress = Callable[[dict], None]  # called after every epoch with that epoch's log (a dict)
 
@@ -86,10 +96,11 @@ def cosine_rate(lr: float, lr_final: float, epoch: int, epochs: int) -> float:
     return lr_final + 0.5 * (lr - lr_final) * (1 + math.cos(math.pi * frac))
 
 
-def seed(value: int) -> tuple[np.random.Generator, torch.Generator]:
-    """Seed torch's global generator and return the numpy and torch generators a trainer keeps."""
+def seed(value: int, device: torch.device = torch.device("cpu")) -> tuple[np.random.Generator, torch.Generator]:
+    """Seed torch's global generators and return the numpy generator and the torch generator (on
+    `device`, where its draws are made) that a trainer keeps."""
     torch.manual_seed(value)
-    return np.random.default_rng(value), torch.Generator().manual_seed(value)
+    return np.random.default_rng(value), generator(device, value)
 
 
 @dataclass
@@ -108,14 +119,17 @@ class Trainer:
     model_class: type[torch.nn.Module] | None = None  # built as model_class(cfg) unless build_model says otherwise
     min_train_clips = 2
 
-    def __init__(self, clips: ClipSet, cfg, tc: LoopConfig, out: str | Path):
+    def __init__(self, clips: ClipSet, cfg, tc: LoopConfig, out: str | Path, group: Group | None = None):
         self.clips, self.cfg, self.tc, self.out = clips, cfg, tc, Path(out)
         if not self.out.absolute().parent.is_dir():  # fail before training, not at the first checkpoint
             raise UserError(f"cannot write {self.out}: folder {self.out.parent} does not exist")
-        self.device, self.rank, self.world_size = torch.device("cpu"), 0, 1
-        self.np_rng, self.torch_gen = seed(tc.seed)
-        self.model = self.build_model()
+        self.group = group or Group()
+        self.device, self.rank, self.world_size = self.group.device, self.group.rank, self.group.world_size
+        self.np_rng, self.torch_gen = seed(tc.seed, self.device)
+        # built on the CPU from the seed: the same initial weights on every device and every rank
+        self.model = self.build_model().to(self.device)
         self.optimizers = self.build_optimizers()
+        self.net = self.group.wrap(self.model)
         self.train_idx, self.val_idx = split_indices(clips, tc.val_fraction, tc.seed)
         if len(self.train_idx) < self.min_train_clips:
             raise UserError(f"need at least {self.min_train_clips} training clips, have {len(self.train_idx)}")
@@ -154,7 +168,8 @@ class Trainer:
         return self.rank == 0
 
     def check_finite(self, loss: torch.Tensor) -> None:
-        if not torch.isfinite(loss):
+        """TrainingError when the loss is not finite (on any rank: all ranks stop together)."""
+        if self.group.any(not bool(torch.isfinite(loss))):
             raise TrainingError(f"non-finite loss at epoch {self.epoch + 1}")
 
     def state(self) -> dict:
@@ -180,8 +195,14 @@ class Trainer:
         self.epoch = int(ckpt["epoch"])
         self.history = list(ckpt["history"])
         self.load_extra_state(ckpt)
-        restore_rng(ckpt["rng"], self.np_rng, self.torch_gen)
-        self._snapshot = copy.deepcopy(self.state())
+        if not restore_rng(ckpt["rng"], self.np_rng, self.torch_gen):
+            # saved from a generator on another kind of device: its stream cannot go on here
+            self.torch_gen.manual_seed(self.tc.seed * 1_000_003 + self.epoch)
+        self._snapshot = self.snapshot()
+
+    def snapshot(self) -> dict:
+        """A copy of the current state, on the CPU (a GPU's memory holds only the live state)."""
+        return copy.deepcopy(cpu_tensors(self.state()))
 
     def save(self, extra: dict | None = None, state: dict | None = None) -> None:
         """Write the checkpoint `out` atomically: `state` (default: the current one) plus `extra`."""
@@ -191,9 +212,11 @@ class Trainer:
             self._saved_epoch = state["epoch"]
 
     @classmethod
-    def resumed(cls, path: str | Path, clips: ClipSet, tc: LoopConfig, out: str | Path) -> "Trainer":
-        """The trainer of checkpoint `path`, in the state it was saved in. Its model config and
-        schedule are kept; only the length (tc.epochs, if longer) and the thread count may change."""
+    def resumed(cls, path: str | Path, clips: ClipSet, tc: LoopConfig, out: str | Path,
+                group: Group | None = None) -> "Trainer":
+        """The trainer of checkpoint `path`, in the state it was saved in, on `group`'s device and
+        processes (any number). Its model config and schedule are kept; only the length (tc.epochs,
+        if longer) and the thread count may change."""
         ckpt = load_checkpoint(path)
         if ckpt.get("kind") != cls.kind:
             raise UserError(f"cannot resume: {path} holds a {ckpt.get('kind')!r} model, not {cls.kind}")
@@ -201,7 +224,7 @@ class Trainer:
             raise UserError(f"cannot resume: {path} has no training state (a compact, shipped file?)")
         saved = type(tc).from_dict(ckpt["train_config"])
         tc = replace(saved, epochs=max(tc.epochs, saved.epochs), threads=tc.threads or saved.threads)
-        trainer = cls(clips, cls.config_class.from_dict(ckpt["config"]), tc, out)
+        trainer = cls(clips, cls.config_class.from_dict(ckpt["config"]), tc, out, group)
         trainer.load_state(ckpt)
         if Path(path).resolve() == trainer.out.resolve():
             trainer._saved_epoch = trainer.epoch
@@ -228,17 +251,42 @@ class Trainer:
                 if tc.val_every and (self.epoch % tc.val_every == 0 or self.epoch == tc.epochs):
                     log.update({f"val_{k}": v for k, v in self.validate().items()})
                 self.history.append(log)
-                self._snapshot = copy.deepcopy(self.state())
+                self._snapshot = self.snapshot()
                 if (tc.checkpoint_every and self.epoch % tc.checkpoint_every == 0) or self.epoch == tc.epochs:
                     self.save(state=self._snapshot)
                 if progress:
                     progress(log)
         except KeyboardInterrupt:
-            if self._snapshot is not None:
-                self.save(state=self._snapshot)
+            self._keep_snapshot()
             raise
         except TrainingError as exc:
             kept = (f"the last good checkpoint (epoch {self._saved_epoch}) is kept at {self.out}"
                     if self._saved_epoch is not None else f"no checkpoint was written to {self.out}")
             raise TrainingError(f"{exc}; {kept}") from None
+        except Exception as exc:
+            if not (self.group.distributed and peer_lost(exc)):
+                raise
+            self._keep_snapshot()
+            kept = f"epoch {self._snapshot['epoch']} is kept in {self.out}" if self._snapshot else "nothing was saved"
+            raise TrainingError(f"another training process stopped; {kept}") from None
         return self.history
+
+    def _keep_snapshot(self) -> None:
+        if self._snapshot is not None:
+            with _signals_held():
+                self.save(state=self._snapshot)
+
+
+@contextmanager
+def _signals_held():
+    """Ctrl-C and SIGTERM wait while the block runs: a second one must not cut the snapshot's write
+    short (a launcher may pass the same Ctrl-C on to every process)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)

@@ -3,7 +3,9 @@ Adam with gradient clipping, teacher forcing decayed linearly, and at the end th
 the mode mixtures and a report of what the model learnt.
 
 An epoch draws `pairs_per_epoch` pairs (default: one per training clip), half of them of one
-action (`same_class_fraction`, as the authors' release), each clip a random T-frame crop.
+action (`same_class_fraction`, as the authors' release), each clip a random T-frame crop. On
+several processes every rank draws each step's pairs, crops, teacher-forcing coins and code noise
+for the whole batch and computes its share of the pairs (training/distributed.py).
 """
 
 from __future__ import annotations
@@ -17,11 +19,13 @@ import torch
 from odmo_cli import metrics
 from odmo_cli.data.dataset import MotionDataset, crops_from_start, pair_indices
 from odmo_cli.data.readers import ClipSet
+from odmo_cli.device import model_device
 from odmo_cli.errors import UserError
 from odmo_cli.latent import ActionModes, assign, fit_modes, latent_bank, separation
 from odmo_cli.models.losses import odmo_terms, total_loss
 from odmo_cli.models.odmo import ODMO, ODMOConfig, preset_values
 from odmo_cli.parallel import thread_count
+from odmo_cli.training.distributed import training_group
 from odmo_cli.training.loop import LoopConfig, Progress, Trainer, TrainResult, dataset_shapes
 
 
@@ -77,7 +81,7 @@ class ODMOTrainer(Trainer):
         self.data = MotionDataset(self.clips, self.cfg.length, rng=self.np_rng)
 
     def train_epoch(self) -> dict[str, float]:
-        tc, model, opt = self.tc, self.model, self.optimizers["optimizer"]
+        tc, model, opt, dev, gen = self.tc, self.model, self.optimizers["optimizer"], self.device, self.torch_gen
         model.train()
         teacher_rate = tc.teacher_rate(self.epoch)
         n_pairs = tc.pairs_per_epoch or len(self.train_idx)
@@ -87,21 +91,33 @@ class ODMOTrainer(Trainer):
         sums: dict[str, float] = {}
         for b in range(0, n_pairs, tc.batch_size):
             chunk = pairs[b:b + tc.batch_size]
-            motion, lab = self.data.batch(np.concatenate([chunk[:, 0], chunk[:, 1]]))  # (2B, T, J, 3)
-            shape = (len(motion), self.cfg.length) if tc.tf_per == "clip" else (self.cfg.length,)
-            teacher = torch.rand(shape, generator=self.torch_gen) < teacher_rate
-            out = model(motion, lab, generator=self.torch_gen, teacher=teacher)
+            n = len(chunk)
+            both = np.concatenate([chunk[:, 0], chunk[:, 1]])  # (2B,): pair k is rows k and B + k
+            rows, weight = self.group.share(n)
+            mine = np.r_[np.arange(n)[rows], n + np.arange(n)[rows]] if self.group.distributed else None
+            motion, lab = self.data.batch(both, mine)  # (2B, T, J, 3), or this rank's pairs
+            motion, lab = motion.to(dev), lab.to(dev)
+            # drawn for the whole batch, in the order of one process, then this rank's rows taken
+            shape = (2 * n, self.cfg.length) if tc.tf_per == "clip" else (self.cfg.length,)
+            teacher = torch.rand(shape, generator=gen, device=dev) < teacher_rate
+            eps = torch.randn((2 * n, self.cfg.latent_dim), generator=gen, device=dev)
+            if mine is not None:
+                take = torch.from_numpy(mine).to(dev)
+                eps, teacher = eps[take], teacher[take] if tc.tf_per == "clip" else teacher
+            out = self.net(motion, lab, teacher=teacher, eps=eps)
             terms = odmo_terms(out, motion, lab, self.cfg)
             loss = total_loss(terms, self.cfg)
             self.check_finite(loss)
             opt.zero_grad(set_to_none=True)
-            loss.backward()
+            (loss if weight == 1 else loss * weight).backward()
             if tc.grad_clip > 0:
                 torch.nn.utils.clip_grad_norm_(model.parameters(), tc.grad_clip)
             opt.step()
+            own = len(range(n)[rows]) if weight else 0  # pairs this rank computed
             for k, v in terms.items():
-                sums[k] = sums.get(k, 0.0) + float(v.detach()) * len(chunk)
-            sums["total"] = sums.get("total", 0.0) + float(loss.detach()) * len(chunk)
+                sums[k] = sums.get(k, 0.0) + float(v.detach()) * own
+            sums["total"] = sums.get("total", 0.0) + float(loss.detach()) * own
+        sums = self.group.sum(sums)
         return {"clips": 2 * n_pairs, "teacher": teacher_rate, **{k: v / n_pairs for k, v in sums.items()}}
 
     def validate(self) -> dict[str, float]:
@@ -116,11 +132,13 @@ def reconstruction_error(model: ODMO, clips: ClipSet, idx: np.ndarray, batch: in
     sampling time, no teacher forcing): mean per-joint position error and end-point error (dataset
     units), and the body's speed and amplitude over the clips' own (metrics.damping_ratios)."""
     model.eval()
+    dev = model_device(model)
     joint_err, end_err, recons, reals, labs = [], [], [], [], []
     for b in range(0, len(idx), batch):
         motion, labels = crops_from_start(clips, idx[b:b + batch], model.cfg.length)
-        mu, _ = model.encode(motion)
-        _, recon = model.decode(mu, labels, motion[:, -1, 0])
+        mu, _ = model.encode(motion.to(dev))
+        _, recon = model.decode(mu, labels.to(dev), motion[:, -1, 0].to(dev))
+        recon = recon.cpu()
         joint_err.append((recon - motion).norm(dim=-1).mean(dim=(1, 2)))
         end_err.append((recon[:, -1, 0] - motion[:, -1, 0]).norm(dim=-1))
         recons.append(recon.numpy())
@@ -140,9 +158,9 @@ def noise_ceiling(model: ODMO, clips: ClipSet, idx: np.ndarray, seed: int, batch
     mus, stds, motions, labels = [], [], [], []
     for b in range(0, len(idx), batch):
         motion, lab = crops_from_start(clips, idx[b:b + batch], model.cfg.length)
-        mu, logvar = model.encode(motion)
-        mus.append(mu.numpy())
-        stds.append(torch.exp(0.5 * logvar).numpy())
+        mu, logvar = model.encode(motion.to(model_device(model)))
+        mus.append(mu.cpu().numpy())
+        stds.append(torch.exp(0.5 * logvar).cpu().numpy())
         motions.append(motion.numpy())
         labels.append(lab.numpy())
     c = metrics.noise_ceiling(np.concatenate(mus), np.concatenate(stds), np.concatenate(motions),
@@ -189,12 +207,13 @@ def finish(trainer: ODMOTrainer) -> dict:
 
 def train_odmo(clips: ClipSet, tc: TrainConfig, out: Path, overrides: dict | None = None,
                resume: Path | None = None, progress: Progress | None = None,
-               preset: str = "odmo") -> TrainResult:
-    """Train ODMO on clips (or resume a checkpoint), then write the final checkpoint with its bank."""
-    with thread_count(tc.threads):
+               preset: str = "odmo", device: str = "cpu") -> TrainResult:
+    """Train ODMO on clips (or resume a checkpoint), then write the final checkpoint with its bank.
+    `device`: --device's value; under torchrun (or `launch`) one of several processes."""
+    with thread_count(tc.threads), training_group(device) as group:
         if resume is not None:
-            trainer = ODMOTrainer.resumed(resume, clips, tc, out)
+            trainer = ODMOTrainer.resumed(resume, clips, tc, out, group)
         else:
-            trainer = ODMOTrainer(clips, model_config_for(clips, overrides, preset), tc, out)
+            trainer = ODMOTrainer(clips, model_config_for(clips, overrides, preset), tc, out, group)
         history = trainer.run(progress)
         return TrainResult(Path(out), trainer.epoch, history, finish(trainer))
