@@ -213,9 +213,9 @@ def complete(loaded: LoadedODMO | LoadedBaseline, prefix: np.ndarray, frames: in
     motion (T, J, 3) starts with exactly those frames. Only DVGAN-RNN models complete.
     """
     kind = loaded.kind if isinstance(loaded, LoadedBaseline) else "odmo"
-    generator = getattr(loaded.model.cfg, "generator", "")
-    if kind != "dvgan" or generator != "rnn":
-        name = f"DVGAN-{generator.upper()}" if kind == "dvgan" else {"odmo": "ODMO"}.get(kind, kind)
+    net = getattr(loaded.model.cfg, "generator", "")  # DVGAN's generator network: cnn or rnn
+    if kind != "dvgan" or net != "rnn":
+        name = f"DVGAN-{net.upper()}" if kind == "dvgan" else {"odmo": "ODMO"}.get(kind, kind)
         raise UserError(f"{loaded.source} is {name}, which does not complete; completion needs a DVGAN-RNN model "
                         "(odmo train dvgan --generator rnn)")
     cfg = loaded.model.cfg
