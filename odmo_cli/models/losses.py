@@ -92,7 +92,7 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
     l_mre = sequence_error(out["motion"], motion, w)
     l_cons = sequence_error(out["trajectory"], out["motion"][:, :, 0])
     l_vel = sequence_error(out["motion"].diff(dim=1), motion.diff(dim=1), w)
-    l_energy = energy_error(out["motion"], motion) if cfg.energy_weight else torch.zeros(len(motion))
+    l_energy = energy_error(out["motion"], motion) if cfg.energy_weight else motion.new_zeros(len(motion))
     half = len(motion) // 2
     mu, logvar = out["mu"], out["logvar"]
     same = labels[:half] == labels[half:]
