@@ -36,11 +36,28 @@ def _as_2d(features: ArrayLike, name: str) -> NDArray[np.float64]:
     return x
 
 
-def _as_motions(motions: ArrayLike, name: str = "motions") -> NDArray[np.float64]:
-    m = np.asarray(motions, dtype=np.float64)
+def _as_motions(motions: ArrayLike, name: str = "motions", dtype=np.float64) -> NDArray:
+    """motions checked to be (N, T, J, 3), as `dtype` (None: as they are, without a copy)."""
+    m = np.asarray(motions, dtype=dtype)
     if m.ndim != 4 or m.shape[-1] != 3:
         raise ValueError(f"{name} must have shape (N, T, J, 3), got {m.shape}")
     return m
+
+
+BLOCK = 64  # motions per block in the per-motion statistics: small enough to stay in the CPU's cache
+
+
+def _blocks(motions: ArrayLike):
+    """(N, T, J, 3) motions as float64 blocks of at most BLOCK motions (at least one block)."""
+    m = _as_motions(motions, dtype=None)
+    for b in range(0, max(len(m), 1), BLOCK):
+        yield np.asarray(m[b:b + BLOCK], dtype=np.float64)
+
+
+def _norm3(x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Euclidean norm over a last axis of 3, (..., 3) -> (...): np.linalg.norm's sum in its order,
+    without its temporaries."""
+    return np.sqrt(x[..., 0] * x[..., 0] + x[..., 1] * x[..., 1] + x[..., 2] * x[..., 2])
 
 
 def _as_labels(labels: ArrayLike, n: int, name: str = "labels") -> NDArray[np.int64]:
@@ -235,11 +252,11 @@ def apd(motions: ArrayLike) -> float:
 def class_apd(motions: ArrayLike, labels: ArrayLike, cap: int | None = None) -> dict[int, float]:
     """{category: APD of its motions} for every category of `labels` with at least 2 motions
     (the first `cap` of each, when given). motions (N, T, J, 3), labels (N,)."""
-    m = _as_motions(motions)
+    m = _as_motions(motions, dtype=None)
     y = _as_labels(labels, m.shape[0])
     out = {}
     for c in np.unique(y).tolist():
-        own = m[y == c][:cap]
+        own = np.asarray(m[y == c][:cap], dtype=np.float64)
         if own.shape[0] >= 2:
             out[c] = apd(own)
     return out
@@ -364,15 +381,15 @@ def bone_length_consistency(motions: ArrayLike, parents: Sequence[int]) -> float
     motions: (N, T, J, 3); parents: J ints, parents[j] the parent joint of j, -1 for the root.
     Each j with a parent defines one bone. The std is the population std (ddof=0) over T.
     """
-    m = _as_motions(motions)
+    m = _as_motions(motions, dtype=None)  # converted to float64 block by block
     par = np.asarray(parents, dtype=np.int64)
     if par.shape != (m.shape[2],):
         raise ValueError(f"parents must have one entry per joint ({m.shape[2]}), got {par.shape}")
     child = np.flatnonzero(par >= 0)  # (B,)
     if child.size == 0:
         raise ValueError("parents defines no bone")
-    lengths = np.linalg.norm(m[:, :, child] - m[:, :, par[child]], axis=-1)  # (N, T, B)
-    return float(lengths.std(axis=1).mean())
+    std = [_norm3(c[:, :, child] - c[:, :, par[child]]).std(axis=1) for c in _blocks(m)]  # (n, B) each
+    return float(np.concatenate(std).mean())
 
 
 # ---------------------------------------------------------------------------------------------
@@ -424,25 +441,29 @@ def _body(motions: ArrayLike, smooth: int) -> NDArray[np.float64]:
 def body_speed(motions: ArrayLike, smooth: int = 3) -> NDArray[np.float64]:
     """Mean body-relative joint speed of each motion (N,), in units per frame: the norm of the
     frame-to-frame change of every joint about the root, averaged over joints and frames."""
-    return _speed(_body(motions, smooth))
+    return body_speed_and_amplitude(motions, smooth)[0]
 
 
 def body_amplitude(motions: ArrayLike, smooth: int = 3) -> NDArray[np.float64]:
     """Mean amplitude of each motion (N,): the standard deviation over time of every joint's
     position about the root (root-mean-square distance from its mean position), averaged over joints."""
-    return _amplitude(_body(motions, smooth))
+    return body_speed_and_amplitude(motions, smooth)[1]
 
 
 def body_speed_and_amplitude(motions: ArrayLike, smooth: int = 3) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """(body_speed, body_amplitude) of each motion, smoothing the motions once for both."""
-    body = _body(motions, smooth)
-    return _speed(body), _amplitude(body)
+    speed, amplitude = [], []
+    for block in _blocks(motions):  # each motion's figures alone: the same numbers as all at once
+        body = _body(block, smooth)
+        speed.append(_speed(body))
+        amplitude.append(_amplitude(body))
+    return np.concatenate(speed), np.concatenate(amplitude)
 
 
 def _speed(body: NDArray[np.float64]) -> NDArray[np.float64]:
     if body.shape[1] < 2:
         raise ValueError("body_speed needs at least 2 frames after smoothing")
-    return np.linalg.norm(np.diff(body, axis=1), axis=-1).mean(axis=(1, 2))
+    return _norm3(np.diff(body, axis=1)).mean(axis=(1, 2))
 
 
 def _amplitude(body: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -35,6 +35,30 @@ def test_bench_sampling_reports_median_min_max(tmp_path):
     assert report["machine"]["cores"] >= 1
 
 
+def test_bench_evaluation_beside_the_authors_networks(tmp_path, monkeypatch):
+    """The protocol's seconds and, from the peer's motions/s in the same run, the seconds their
+    networks take to generate the protocol's motions (10 repeats x per_action x actions)."""
+    from odmo_cli.evaluation import bench, protocol
+
+    peer = tmp_path / "peer.py"
+    peer.write_text("import json; print(json.dumps({'motions_per_s': 500.0}))\n")
+    calls = []
+
+    def fake_run(models, dataset, data, classifier, cfg, device=None):
+        calls.append(cfg.repeats)
+        row = {"per_action": 5, "by_action": {f"a{i}": 100.0 for i in range(12)}}
+        return protocol.Report("humanact12", "clf.pt", {}, rows=[{"name": "Real"}, row])
+
+    monkeypatch.setattr(protocol, "run_evaluation", fake_run)
+    figures = bench.bench_evaluation(None, None, 2, torch.device("cpu"), peer)
+    assert calls == [10, 10]
+    ours, theirs, ratio = figures
+    assert ours.name.startswith("evaluation protocol, humanact12") and ours.unit == "s"
+    assert "600 motions" in theirs.name and theirs.runs == [600 / 500.0, 600 / 500.0]
+    assert ratio.runs == pytest.approx([a / 1.2 for a in ours.runs])
+    assert len(bench.bench_evaluation(None, None, 1, torch.device("cpu"), None)) == 1  # no peer: no reference
+
+
 def test_bench_bad_part():
     res = CliRunner().invoke(app, ["bench", "--only", "gpu"])
     assert res.exit_code == 2

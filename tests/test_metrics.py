@@ -349,6 +349,26 @@ def test_body_speed_and_amplitude_known_values():
     assert metrics.body_speed(sq, smooth=2)[0] == pytest.approx(0.0)  # jitter averages away
 
 
+def test_per_motion_statistics_do_not_depend_on_the_block_size():
+    """The statistics run block by block (metrics.BLOCK motions) in float64: each motion's figure is
+    exactly what the whole set at once in float64, with numpy's own norm, gives."""
+    rng = np.random.default_rng(3)
+    m = rng.normal(size=(2 * metrics.BLOCK + 5, 12, 4, 3)).cumsum(1).astype(np.float32)  # spans 3 blocks
+    parents = [-1, 0, 1, 1]
+    body = m.astype(np.float64)[:, :, 1:] - m.astype(np.float64)[:, :, :1]
+    body = (body[:, :-2] + body[:, 1:-1] + body[:, 2:]) / 3  # the 3-frame moving average
+    speed = np.linalg.norm(np.diff(body, axis=1), axis=-1).mean(axis=(1, 2))
+    dev = body - body.mean(axis=1, keepdims=True)
+    amplitude = np.sqrt((dev ** 2).sum(-1).mean(axis=1)).mean(axis=1)
+    got_speed, got_amplitude = metrics.body_speed_and_amplitude(m)
+    assert got_speed.shape == (len(m),) and np.array_equal(got_speed, speed)
+    assert np.array_equal(got_amplitude, amplitude)
+    m64 = m.astype(np.float64)
+    lengths = np.linalg.norm(m64[:, :, 1:] - m64[:, :, [0, 1, 1]], axis=-1)  # (N, T, 3)
+    assert metrics.bone_length_consistency(m, parents) == float(lengths.std(axis=1).mean())
+    assert metrics.body_speed_and_amplitude(m[:0])[0].shape == (0,)
+
+
 def test_damping_ratios_see_slowed_and_shrunk_motion():
     real = _swing(2)
     labels = np.array([0, 1])

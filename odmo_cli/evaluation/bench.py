@@ -268,11 +268,32 @@ def bench_training(dataset: str, data, runs: int, device: torch.device = torch.d
             Figure(f"training arithmetic rate, {dataset}", "GFLOP/s", [flops / t / 1e9 for t in seconds], note)]
 
 
-def bench_evaluation(model: str | None, data, runs: int, device: torch.device) -> list[Figure]:
+def bench_evaluation(model: str | None, data, runs: int, device: torch.device, peer: Path | None = None
+                     ) -> list[Figure]:
+    """The default protocol's wall time; with `peer`, beside it in the same run (interleaved) the time
+    the authors' bare networks take to generate as many motions as the protocol generates: the
+    host's speed varies between days, their ratio much less."""
     from odmo_cli.evaluation.protocol import EvalConfig, run_evaluation
 
-    times = _timed(lambda: run_evaluation([model], None, data, None, EvalConfig(), device=device), runs, warmup=0)
-    return [Figure("evaluation protocol (10 repeats, paper's samples per action)", "s", times)]
+    cfg = EvalConfig()
+    times, theirs = [], []
+    dataset = None
+    for _ in range(runs):
+        start = time.perf_counter()
+        report = run_evaluation([model], None, data, None, cfg, device=device)
+        times.append(time.perf_counter() - start)
+        dataset = report.dataset
+        if peer is not None and dataset in PEER_SHAPES:
+            generated = cfg.repeats * report.rows[-1]["per_action"] * len(report.rows[-1]["by_action"])
+            theirs.append(generated / peer_sampling_rate(peer, 1008, dataset))
+    figures = [Figure(f"evaluation protocol, {dataset} (10 repeats, paper's samples per action)", "s", times)]
+    if theirs:
+        figures += [Figure(f"the authors' networks generating the protocol's {generated} motions (bench_peer.py "
+                           "at n = 1008, same run)", "s", theirs, f"{peer}"),
+                    Figure("evaluation protocol over the authors' networks' generation alone", "x",
+                           [a / b for a, b in zip(times, theirs)],
+                           "run by run; the protocol also classifies its real and generated sets and takes their statistics")]
+    return figures
 
 
 def run_bench(model: str | None = None, data=None, runs: int = 5, only: tuple[str, ...] = (),
@@ -319,7 +340,7 @@ def run_bench(model: str | None = None, data=None, runs: int = 5, only: tuple[st
         if want("evaluation"):
             say("evaluation")
             try:
-                report.figures += bench_evaluation(model, data, max(1, min(runs, 3)), device)
+                report.figures += bench_evaluation(model, data, max(1, min(runs, 3)), device, peer or find_peer())
             except UserError as exc:
                 report.skipped.append(f"evaluation: {exc}")
     return report

@@ -124,12 +124,12 @@ class SetStats:
     apd: dict  # {action: APD} for the actions with at least 2 motions
 
 
-def set_stats(motions: np.ndarray, labels: np.ndarray, classifier, parents) -> SetStats:
+def set_stats(motions: np.ndarray, labels: np.ndarray, classifier, parents, with_apd: bool = True) -> SetStats:
+    """The statistics in float64 (metrics converts block by block); n-APD only `with_apd`."""
     logits, feats = classifier.predict(motions)
-    m64 = motions.astype(np.float64)  # once, for every statistic below
-    speed, amplitude = metrics.body_speed_and_amplitude(m64)
-    return SetStats(logits, feats, labels, metrics.bone_length_consistency(m64, parents), speed, amplitude,
-                    metrics.class_apd(m64, labels, cap=APD_CAP))
+    speed, amplitude = metrics.body_speed_and_amplitude(motions)
+    return SetStats(logits, feats, labels, metrics.bone_length_consistency(motions, parents), speed, amplitude,
+                    metrics.class_apd(motions, labels, cap=APD_CAP) if with_apd else {})
 
 
 def real_sets(clips: ClipSet, classifier, cfg: EvalConfig) -> RealSets:
@@ -137,7 +137,9 @@ def real_sets(clips: ClipSet, classifier, cfg: EvalConfig) -> RealSets:
     n = cfg.n_for(clips.manifest.name)
     parents = clips.manifest.skeleton.parents
     crops = [real_crops(clips, n, rng) for _ in range(cfg.repeats + 1)]  # drawn in order from one rng
-    stats = list(parallel_map(lambda c: set_stats(*c, classifier, parents), crops, cfg.n_workers))
+    # n-APD compares generated sets with the first real set only
+    stats = list(parallel_map(lambda r: set_stats(*crops[r], classifier, parents, with_apd=r == 0),
+                              range(len(crops)), cfg.n_workers))
     return RealSets([s.features for s in stats], crops[0][1], [s.logits for s in stats], stats[0].apd,
                     [s.bone_std for s in stats], [s.speed for s in stats], [s.amplitude for s in stats])
 
