@@ -75,6 +75,24 @@ def test_an_option_of_another_model_is_refused_before_any_work(kind, tmp_path, m
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("kind", ["odmo", "classifier"])
+def test_resume_without_epochs_keeps_the_runs_own_length(kind, tmp_path, monkeypatch):
+    """A 1-epoch run resumed without --epochs stays 1 epoch (not the command's default of 300 or 200,
+    which would also stretch its schedules); --epochs 2 extends it."""
+    import torch
+
+    monkeypatch.chdir(tmp_path)
+    base = ["train", kind, "--dataset", str(demo_folder("humanact12")), "--threads", "1"]
+    assert CliRunner().invoke(app, [*base, "--epochs", "1", "--out", "m.pt"]).exit_code == 0
+    res = CliRunner().invoke(app, [*base, "--resume", "m.pt", "--out", "same.pt"])
+    assert res.exit_code == 0, res.output
+    saved = torch.load(tmp_path / "same.pt", weights_only=True)
+    assert saved["epoch"] == 1 and saved["train_config"]["epochs"] == 1
+    res = CliRunner().invoke(app, [*base, "--resume", "m.pt", "--epochs", "2", "--out", "longer.pt"])
+    assert res.exit_code == 0, res.output
+    assert torch.load(tmp_path / "longer.pt", weights_only=True)["epoch"] == 2
+
+
 @pytest.mark.parametrize("kind, args, message", [
     # ODMO (`odmo train` without a kind is ODMO)
     (None, ["--ablate", "nope"], "unknown ablation 'nope'; valid: es, traj, cons, end-point"),

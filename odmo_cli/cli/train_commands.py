@@ -23,7 +23,7 @@ DatasetOpt = Annotated[str, typer.Option("--dataset", help="Dataset name (see `o
 LrFinalOpt = Annotated[Optional[float], typer.Option("--lr-final", help="Cosine decay of the rate to this value over the epochs (default: the model's; constant for odmo, a2m, dvgan).")]
 CheckpointOpt = Annotated[Optional[int], typer.Option("--checkpoint-every", help="Epochs between checkpoints (one is always written at the end; default 25).")]
 ValOpt = Annotated[Optional[int], typer.Option("--val-every", help="Epochs between validations on the held-out clips (0: never).")]
-ResumeOpt = Annotated[Optional[Path], typer.Option("--resume", help="Checkpoint to continue from, exactly (its model and schedule are kept; --epochs may extend it).")]
+ResumeOpt = Annotated[Optional[Path], typer.Option("--resume", help="Checkpoint to continue from, exactly (its model and schedule are kept; its own length unless --epochs extends it).")]
 ThreadsOpt = Annotated[int, typer.Option("--threads", help="CPU threads for torch (0: torch's default).")]
 NprocOpt = Annotated[int, typer.Option("--nproc", help="Processes training together on this machine (data-parallel, "
                                                      "the same global batch; with --device cuda one GPU each). "
@@ -69,6 +69,13 @@ def _without_nproc(argv: list[str]) -> list[str]:
 def _given(**values) -> dict:
     """The options the user gave (None: not given, the config's default applies)."""
     return {k: v for k, v in values.items() if v is not None}
+
+
+def _epochs(resume: Optional[Path], epochs: Optional[int]) -> Optional[int]:
+    """--epochs as given; resuming without it, the checkpoint's own length (training.loop.resume_epochs)."""
+    from odmo_cli.training.loop import resume_epochs
+
+    return resume_epochs(resume, epochs)
 
 
 def _clips(dataset: str, data: Optional[Path]):
@@ -124,7 +131,7 @@ def train_odmo_cmd(
                  "use_cons": "cons" not in (ablate or []), "use_end_point": "end-point" not in (ablate or [])}
     overrides.update(_given(**scales))
     lr = 1e-3 if lr is None else lr
-    tc = TrainConfig(**_given(epochs=epochs, batch_size=batch_size, checkpoint_every=checkpoint_every,
+    tc = TrainConfig(**_given(epochs=_epochs(resume, epochs), batch_size=batch_size, checkpoint_every=checkpoint_every,
                               val_every=val_every, same_class_fraction=same_class, tf_per=tf_per),
                      lr=lr, lr_final=lr if lr_final is None else lr_final, tf_epochs=tf_epochs,
                      seed=seed, threads=threads)
@@ -163,7 +170,7 @@ def train_classifier_cmd(
     from odmo_cli.training.classifier import ClassifierTrainConfig, train_classifier
 
     out = _out(out, "classifier")
-    tc = ClassifierTrainConfig(**_given(epochs=epochs, batch_size=batch_size, lr=lr, lr_final=lr_final,
+    tc = ClassifierTrainConfig(**_given(epochs=_epochs(resume, epochs), batch_size=batch_size, lr=lr, lr_final=lr_final,
                                         checkpoint_every=checkpoint_every), seed=seed, threads=threads)
     prints = _start(device, nproc)  # after the options' own checks, before any data is read
     clips = _clips(dataset, data)
@@ -203,7 +210,7 @@ def train_a2m_cmd(
     out = _out(out, "a2m")
     if representation is not None and representation not in REPRESENTATIONS:
         raise UserError(f"unknown representation {representation!r}; valid: {', '.join(REPRESENTATIONS)}")
-    tc = A2MTrainConfig(**_given(epochs=epochs, batch_size=batch_size, lr=lr, lr_final=lr_final,
+    tc = A2MTrainConfig(**_given(epochs=_epochs(resume, epochs), batch_size=batch_size, lr=lr, lr_final=lr_final,
                                  checkpoint_every=checkpoint_every, val_every=val_every), seed=seed, threads=threads)
     prints = _start(device, nproc)  # after the options' own checks, before any data is read
     clips = _clips(dataset, data)
@@ -239,7 +246,7 @@ def train_dvgan_cmd(
     out = _out(out, "dvgan")
     if generator not in GENERATORS:
         raise UserError(f"unknown DVGAN generator {generator!r}; valid: {', '.join(GENERATORS)}")
-    tc = DVGANTrainConfig(**_given(epochs=epochs, batch_size=batch_size, lr=lr, lr_final=lr_final, n_critic=n_critic,
+    tc = DVGANTrainConfig(**_given(epochs=_epochs(resume, epochs), batch_size=batch_size, lr=lr, lr_final=lr_final, n_critic=n_critic,
                                    checkpoint_every=checkpoint_every), seed=seed, threads=threads)
     prints = _start(device, nproc)  # after the options' own checks, before any data is read
     clips = _clips(dataset, data)

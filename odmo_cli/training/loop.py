@@ -96,6 +96,14 @@ def cosine_rate(lr: float, lr_final: float, epoch: int, epochs: int) -> float:
     return lr_final + 0.5 * (lr - lr_final) * (1 + math.cos(math.pi * frac))
 
 
+def resume_epochs(path: str | Path | None, epochs: int | None) -> int | None:
+    """The length of a run: `epochs` when given; resuming without it, the checkpoint's own length
+    (a default would otherwise lengthen a shorter run and stretch its schedules)."""
+    if epochs is not None or path is None:
+        return epochs
+    return load_checkpoint(path).get("train_config", {}).get("epochs")
+
+
 def seed(value: int, device: torch.device = torch.device("cpu")) -> tuple[np.random.Generator, torch.Generator]:
     """Seed torch's global generators and return the numpy generator and the torch generator (on
     `device`, where its draws are made) that a trainer keeps."""
