@@ -14,6 +14,7 @@ from odmo_cli.cli import app
 from odmo_cli.data.demo import demo_folder
 from odmo_cli.data.locate import resolve
 from odmo_cli.data.readers import read_dataset
+from odmo_cli.errors import UserError
 from odmo_cli.models import losses
 from odmo_cli.models.odmo import ODMO, ODMOConfig, condition
 from odmo_cli.training.odmo import ODMOTrainer, TrainConfig, model_config_for, train_odmo
@@ -172,8 +173,33 @@ def test_energy_weight_enters_the_total():
     assert losses.total_loss(terms, tiny_config()).item() == 12.0
     assert losses.total_loss(terms, tiny_config(energy_weight=4.0)).item() == 13.0
     assert losses.total_loss(terms, tiny_config(energy_weight=4.0, recon_weight=2.0)).item() == 24.0
-    with pytest.raises(ValueError, match="energy_weight must be non-negative"):
+    with pytest.raises(ValueError, match="energy_weight and free_energy_weight must be non-negative"):
         tiny_config(energy_weight=-1.0)
+    terms["free_energy"] = torch.tensor(0.5)
+    assert losses.total_loss(terms, tiny_config(free_energy_weight=2.0)).item() == 13.0
+    assert losses.total_loss(terms, tiny_config(energy_weight=4.0, free_energy_weight=2.0, recon_weight=2.0)).item() == 26.0
+    with pytest.raises(ValueError, match="non-negative, got 0.0, 0.0, -1.0"):
+        tiny_config(free_energy_weight=-1.0)
+
+
+def test_free_decode_is_the_sampling_decode_of_the_same_codes():
+    """forward(free=True) adds the decode of the same codes without teacher forcing, which is what
+    sampling runs; the free-running energy term is then computed on it (and is 0 without it)."""
+    torch.manual_seed(0)
+    cfg = tiny_config()
+    model = ODMO(cfg).eval()
+    motion = torch.randn(4, cfg.length, cfg.n_joints, 3).cumsum(1)
+    labels = torch.tensor([0, 1, 2, 0])
+    teacher = torch.ones(cfg.length, dtype=torch.bool)
+    out = model(motion, labels, eps=torch.zeros(4, cfg.latent_dim), teacher=teacher, free=True)
+    assert "free_motion" not in model(motion, labels, eps=torch.zeros(4, cfg.latent_dim), teacher=teacher)
+    _, sampled = model.decode(out["z"], labels, motion[:, -1, 0])
+    assert torch.equal(out["free_motion"], sampled)
+    assert not torch.allclose(out["motion"], sampled)  # the teacher-forced pass differs
+    terms = losses.odmo_terms(out, motion, labels, cfg)
+    assert terms["free_energy"].item() == pytest.approx(losses.energy_error(sampled, motion).mean().item())
+    out.pop("free_motion")
+    assert losses.odmo_terms(out, motion, labels, cfg)["free_energy"].item() == 0.0
 
 
 # -- model -----------------------------------------------------------------------------------
@@ -287,6 +313,33 @@ def test_checkpoint_is_safe_and_holds_the_latent_bank(demo_clips, tmp_path):
     assert result.report["held_out_mpjpe"] > 0
 
 
+def test_free_running_term_starts_once_teacher_forcing_has_decayed():
+    assert TrainConfig(epochs=1000, tf_epochs=500).free_start() == 500
+    assert TrainConfig(epochs=300).free_start() == 150  # teacher forcing decays over all epochs: from half
+    assert TrainConfig(epochs=300, tf_epochs=100, free_from=7).free_start() == 7
+    with pytest.raises(UserError, match="--free-from must be an epoch"):
+        TrainConfig(free_from=-2)
+
+
+def test_free_running_term_changes_nothing_before_it_starts(demo_clips, tmp_path):
+    """Epochs before free_start compute bit for bit what a run without the term computes (so a run
+    may be switched to it before that epoch); from free_start on it trains the free-running decode."""
+    def run(name, weight, free_from, epochs=2):
+        torch.manual_seed(0)
+        cfg = model_config_for(demo_clips, {"motion_hidden": 16, "traj_hidden": 16, "free_energy_weight": weight})
+        trainer = ODMOTrainer(demo_clips, cfg, small_tc(epochs=epochs, free_from=free_from), tmp_path / name)
+        return trainer.run(), trainer.model.state_dict()
+
+    h_off, w_off = run("off.pt", 0.0, -1)
+    h_later, w_later = run("later.pt", 2.0, 2)
+    assert all(torch.equal(w_off[k], w_later[k]) for k in w_off)
+    assert [h["total"] for h in h_off] == [h["total"] for h in h_later]
+    assert all(h["free_energy"] == 0.0 for h in h_later)
+    h_on, w_on = run("on.pt", 2.0, 1)
+    assert h_on[0]["total"] == h_off[0]["total"] and h_on[1]["free_energy"] > 0
+    assert not all(torch.equal(w_off[k], w_on[k]) for k in w_off)
+
+
 def test_teacher_forcing_decays_linearly():
     tc = TrainConfig(epochs=11, tf_start=1.0, tf_end=0.3)
     assert tc.teacher_rate(0) == 1.0
@@ -302,10 +355,15 @@ def test_cli_train_and_info(tmp_path):
     out = tmp_path / "m.pt"
     res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--epochs", "1",
                               "--batch-size", "8", "--out", str(out), "--json", "--sigma2", "0.0025",
-                              "--recon-weight", "2", "--energy-weight", "1.5"])
+                              "--recon-weight", "2", "--energy-weight", "1.5", "--free-energy-weight", "0.5",
+                              "--free-from", "3"])
     assert res.exit_code == 0, res.output
-    config = torch.load(out, weights_only=True)["config"]
+    saved = torch.load(out, weights_only=True)
+    config = saved["config"]
     assert config["sigma2"] == 0.0025 and config["recon_weight"] == 2.0 and config["energy_weight"] == 1.5
+    assert config["free_energy_weight"] == 0.5 and saved["train_config"]["free_from"] == 3
+    res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--free-energy-weight", "-1"])
+    assert res.exit_code == 2 and res.stderr == "error: --free-energy-weight must not be negative, got -1.0\n"
     res = runner.invoke(app, ["info", "--model", str(out), "--json"])
     assert res.exit_code == 0 and '"kind": "odmo"' in res.stdout and '"weights": "float32"' in res.stdout
 
@@ -318,7 +376,8 @@ def test_presets_per_dataset():
     assert preset_values("release", "cmu_mocap")["up_weight"] == 1.0
     # the default adds L_energy to the release's scales, for every dataset
     assert preset_values("odmo", "cmu_mocap") == {"sigma2": 0.0025, "recon_weight": 2.0, "up_weight": 1.0,
-                                                  "energy_weight": 2.0}
-    assert preset_values("odmo", "my_dataset") == {"sigma2": 0.0025, "recon_weight": 2.0, "energy_weight": 2.0}
+                                                  "energy_weight": 2.0, "free_energy_weight": 2.0}
+    assert preset_values("odmo", "my_dataset") == {"sigma2": 0.0025, "recon_weight": 2.0, "energy_weight": 2.0,
+                                                   "free_energy_weight": 2.0}
     with pytest.raises(ValueError, match="unknown preset 'best'; valid: paper, release, odmo"):
         preset_values("best", "humanact12")

@@ -101,6 +101,8 @@ def train_odmo_cmd(
     recon_weight: Annotated[Optional[float], typer.Option("--recon-weight", help="Weight of the reconstruction terms against L_es (paper 1: means over clips; release 2: summed over each pair).")] = None,
     vel_weight: Annotated[Optional[float], typer.Option("--vel-weight", help="Weight of the joint-velocity error L_vel (0: off, as in the paper and the release).")] = None,
     energy_weight: Annotated[Optional[float], typer.Option("--energy-weight", help="Weight of L_energy, each joint's speed and amplitude about the root against the clip's (preset odmo: 2; 0: off, as in the paper and the release).")] = None,
+    free_energy_weight: Annotated[Optional[float], typer.Option("--free-energy-weight", help="Weight of L_energy on a second, free-running decode of the same codes, as sampling runs it (preset odmo: 2; 0: off).")] = None,
+    free_from: Annotated[Optional[int], typer.Option("--free-from", help="First epoch (0-based) of the free-running L_energy (default: once teacher forcing has decayed; half the epochs when it decays over all).")] = None,
     checkpoint_every: CheckpointOpt = None, val_every: ValOpt = None,
     out: OutOpt = None, resume: ResumeOpt = None, threads: ThreadsOpt = 0,
     device: DeviceOpt = "cpu", nproc: NprocOpt = 1, seed: SeedOpt = 0, as_json: JsonOpt = False,
@@ -123,16 +125,18 @@ def train_odmo_cmd(
     for key, value in scales.items():
         if value is not None and not value > 0:
             raise UserError(f"--{key.replace('_', '-')} must be a positive number, got {value}")
-    for flag, value in (("--vel-weight", vel_weight), ("--energy-weight", energy_weight)):
+    for flag, value in (("--vel-weight", vel_weight), ("--energy-weight", energy_weight),
+                        ("--free-energy-weight", free_energy_weight)):
         if value is not None and value < 0:
             raise UserError(f"{flag} must not be negative, got {value}")
-    scales.update(vel_weight=vel_weight, energy_weight=energy_weight)
+    scales.update(vel_weight=vel_weight, energy_weight=energy_weight, free_energy_weight=free_energy_weight)
     overrides = {"use_es": "es" not in (ablate or []), "use_traj": "traj" not in (ablate or []),
                  "use_cons": "cons" not in (ablate or []), "use_end_point": "end-point" not in (ablate or [])}
     overrides.update(_given(**scales))
     lr = 1e-3 if lr is None else lr
     tc = TrainConfig(**_given(epochs=_epochs(resume, epochs), batch_size=batch_size, checkpoint_every=checkpoint_every,
-                              val_every=val_every, same_class_fraction=same_class, tf_per=tf_per),
+                              val_every=val_every, same_class_fraction=same_class, tf_per=tf_per,
+                              free_from=free_from),
                      lr=lr, lr_final=lr if lr_final is None else lr_final, tf_epochs=tf_epochs,
                      seed=seed, threads=threads)
     prints = _start(device, nproc)  # after the options' own checks, before any data is read

@@ -93,6 +93,7 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
     l_cons = sequence_error(out["trajectory"], out["motion"][:, :, 0])
     l_vel = sequence_error(out["motion"].diff(dim=1), motion.diff(dim=1), w)
     l_energy = energy_error(out["motion"], motion) if cfg.energy_weight else motion.new_zeros(len(motion))
+    l_free = energy_error(out["free_motion"], motion) if "free_motion" in out else motion.new_zeros(len(motion))
     half = len(motion) // 2
     mu, logvar = out["mu"], out["logvar"]
     same = labels[:half] == labels[half:]
@@ -105,6 +106,7 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
         "cons": l_cons.mean(),
         "vel": l_vel.mean(),
         "energy": l_energy.mean(),
+        "free_energy": l_free.mean(),
         "vae": standard_kl(mu, logvar).mean() * 2,
     }
 
@@ -117,6 +119,8 @@ def total_loss(terms: dict[str, torch.Tensor], cfg) -> torch.Tensor:
         recon = recon + cfg.vel_weight * terms["vel"]
     if cfg.energy_weight:
         recon = recon + cfg.energy_weight * terms["energy"]
+    if cfg.free_energy_weight:
+        recon = recon + cfg.free_energy_weight * terms["free_energy"]
     if cfg.use_traj:
         recon = recon + terms["r"]
     if cfg.use_cons:

@@ -39,6 +39,9 @@ class TrainConfig(LoopConfig):
     tf_end: float = 0.3
     tf_epochs: int = 0  # teacher forcing decays linearly over this many epochs (0: all epochs)
     tf_per: str = "step"  # one teacher-forcing coin per time step for the batch (the release), or per "clip" and step
+    # first epoch (0-based) of the free-running L_energy (ODMOConfig.free_energy_weight); -1: once
+    # teacher forcing has decayed (tf_epochs), or from half the epochs when it decays over all of them
+    free_from: int = -1
     pairs_per_epoch: int = 0  # 0: as many pairs as training clips
     same_class_fraction: float = 0.5  # the release pairs each clip with its class half the time; < 0: independent pairs
     grad_clip: float = 1.0  # as in the authors' release
@@ -50,11 +53,19 @@ class TrainConfig(LoopConfig):
             raise UserError(f"learning rates must be positive, got {self.lr} and {self.lr_final}")
         if not (0 <= self.tf_end <= 1 and 0 <= self.tf_start <= 1):
             raise UserError("teacher-forcing rates must be in [0, 1]")
+        if self.free_from < -1:
+            raise UserError(f"--free-from must be an epoch (or -1: once teacher forcing has decayed), got {self.free_from}")
         if self.tf_per not in ("step", "clip"):
             raise UserError(f"teacher forcing per step or clip, got {self.tf_per!r}")
         if self.same_class_fraction > 1:
             raise UserError(f"--same-class-fraction must be in [0, 1], got {self.same_class_fraction}")
         super().__post_init__()
+
+    def free_start(self) -> int:
+        """The first epoch (0-based) that trains the free-running decode."""
+        if self.free_from >= 0:
+            return self.free_from
+        return self.tf_epochs or self.epochs // 2
 
     def teacher_rate(self, epoch: int) -> float:
         span = self.tf_epochs or self.epochs
@@ -84,6 +95,7 @@ class ODMOTrainer(Trainer):
         tc, model, opt, dev, gen = self.tc, self.model, self.optimizers["optimizer"], self.device, self.torch_gen
         model.train()
         teacher_rate = tc.teacher_rate(self.epoch)
+        free = self.cfg.free_energy_weight > 0 and self.epoch >= tc.free_start()  # a second, free-running decode
         n_pairs = tc.pairs_per_epoch or len(self.train_idx)
         same = tc.same_class_fraction if tc.same_class_fraction >= 0 else None
         labels = self.clips.labels[self.train_idx]
@@ -104,7 +116,7 @@ class ODMOTrainer(Trainer):
             if mine is not None:
                 take = torch.from_numpy(mine).to(dev)
                 eps, teacher = eps[take], teacher[take] if tc.tf_per == "clip" else teacher
-            out = self.net(motion, lab, teacher=teacher, eps=eps)
+            out = self.net(motion, lab, teacher=teacher, eps=eps, free=free)
             terms = odmo_terms(out, motion, lab, self.cfg)
             loss = total_loss(terms, self.cfg)
             self.check_finite(loss)
