@@ -171,3 +171,34 @@ def test_training_restores_the_thread_count(clips, tmp_path):
     train("classifier", clips, tmp_path / "m.pt", 1, threads=max(1, before - 1) if before > 1 else 2)
     assert torch.get_num_threads() == before
     assert np.isfinite(load_checkpoint(tmp_path / "m.pt")["history"][0]["loss"])
+
+
+@pytest.mark.parametrize("how", ["SIGTERM", "SIGINT ignored by the shell"])
+def test_kill_keeps_the_last_completed_epoch(tmp_path, how):
+    """`kill PID` (SIGTERM), and Ctrl-C's SIGINT to a job the shell started in the background with
+    SIGINT ignored (`nohup ... &`), stop a one-process training as Ctrl-C does: the last completed
+    epoch is written (not only the last periodic checkpoint), exit 130, no traceback."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    out = tmp_path / "clf.pt"
+    cmd = [sys.executable, "-m", "odmo_cli", "train", "classifier", "--dataset", str(demo_folder("humanact12")),
+           "--epochs", "100000", "--checkpoint-every", "0", "--threads", "1", "--out", str(out)]
+    ignore = (lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)) if how != "SIGTERM" else None
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=ignore)
+    try:
+        for line in proc.stderr:  # one line every 10 epochs
+            if line.startswith("epoch 20/"):
+                break
+        proc.send_signal(signal.SIGTERM if how == "SIGTERM" else signal.SIGINT)
+        _, stderr = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, stderr
+    assert "interrupted: the last completed epoch is saved in" in stderr and "Traceback" not in stderr
+    ckpt = load_checkpoint(out)
+    assert ckpt["epoch"] >= 20 and len(ckpt["history"]) == ckpt["epoch"]
+    assert os.path.getsize(out) > 0

@@ -173,7 +173,12 @@ def training_group(device: str | torch.device = "cpu") -> Iterator[Group]:
     world = env_world_size()
     dev = resolve_device(device)
     if world <= 1:
-        yield Group(dev)
+        old = _stop_on_signals()
+        try:
+            yield Group(dev)
+        finally:
+            for sig, handler in old.items():
+                signal.signal(sig, handler)
         return
     if dev.type == "mps":
         raise UserError("training on several processes runs on cpu or cuda, not mps")
@@ -194,6 +199,18 @@ def training_group(device: str | torch.device = "cpu") -> Iterator[Group]:
             signal.signal(signal.SIGTERM, old)
         if joined:
             dist.destroy_process_group()
+
+
+def _stop_on_signals() -> dict:
+    """One process: SIGTERM (`kill`, a batch system's stop) becomes a KeyboardInterrupt, so the last
+    completed epoch is written as for Ctrl-C; so does SIGINT where the shell ignores it (a job started
+    in the background with `nohup ... &`). Returns the handlers replaced."""
+    if not _main_thread():
+        return {}
+    old = {signal.SIGTERM: _stop_on_sigterm()}
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        old[signal.SIGINT] = signal.signal(signal.SIGINT, signal.default_int_handler)
+    return old
 
 
 def _stop_on_sigterm():
