@@ -173,12 +173,8 @@ def training_group(device: str | torch.device = "cpu") -> Iterator[Group]:
     world = env_world_size()
     dev = resolve_device(device)
     if world <= 1:
-        old = _stop_on_signals()
-        try:
+        with _stopping_on_signals():
             yield Group(dev)
-        finally:
-            for sig, handler in old.items():
-                signal.signal(sig, handler)
         return
     if dev.type == "mps":
         raise UserError("training on several processes runs on cpu or cuda, not mps")
@@ -191,38 +187,35 @@ def training_group(device: str | torch.device = "cpu") -> Iterator[Group]:
     joined = not dist.is_initialized()
     if joined:
         dist.init_process_group("nccl" if dev.type == "cuda" else "gloo", device_id=dev if dev.type == "cuda" else None)
-    old = _stop_on_sigterm()
     try:
-        yield Group(dev, dist.get_rank(), dist.get_world_size())
+        with _stopping_on_signals():
+            yield Group(dev, dist.get_rank(), dist.get_world_size())
     finally:
-        if old is not None:
-            signal.signal(signal.SIGTERM, old)
         if joined:
             dist.destroy_process_group()
 
 
-def _stop_on_signals() -> dict:
-    """One process: SIGTERM (`kill`, a batch system's stop) becomes a KeyboardInterrupt, so the last
-    completed epoch is written as for Ctrl-C; so does SIGINT where the shell ignores it (a job started
-    in the background with `nohup ... &`). Returns the handlers replaced."""
+@contextlib.contextmanager
+def _stopping_on_signals() -> Iterator[None]:
+    """Inside the block SIGTERM becomes a KeyboardInterrupt, so the last completed epoch is written as
+    for Ctrl-C: `kill`, a batch system's stop, or a launcher stopping the other processes when one
+    fails or is interrupted. So does SIGINT where it was ignored (a job started in the background
+    with `nohup ... &`). The handlers are restored after."""
     if not _main_thread():
-        return {}
-    old = {signal.SIGTERM: _stop_on_sigterm()}
-    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
-        old[signal.SIGINT] = signal.signal(signal.SIGINT, signal.default_int_handler)
-    return old
-
-
-def _stop_on_sigterm():
-    """A launcher stops the other processes with SIGTERM when one fails or is interrupted: make it
-    a KeyboardInterrupt, so that rank 0 still writes the last completed epoch."""
-    if not _main_thread():
-        return None
+        yield
+        return
 
     def stop(signum, frame):
         raise KeyboardInterrupt
 
-    return signal.signal(signal.SIGTERM, stop)
+    old = {signal.SIGTERM: signal.signal(signal.SIGTERM, stop)}
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        old[signal.SIGINT] = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
 
 
 # -- `odmo train --nproc N` ------------------------------------------------------------------------
