@@ -204,6 +204,30 @@ def test_free_decode_is_the_sampling_decode_of_the_same_codes():
 
 # -- model -----------------------------------------------------------------------------------
 
+def test_shared_trajectory_gives_the_gradients_of_two_separate_decodes():
+    """The free pass reuses the teacher-forced pass's trajectory and trajectory encoding; the
+    gradients are those of decoding the same codes twice (up to rounding)."""
+    torch.manual_seed(0)
+    cfg = tiny_config()
+    model = ODMO(cfg).train()
+    motion = torch.randn(4, cfg.length, cfg.n_joints, 3).cumsum(1)
+    labels = torch.tensor([0, 1, 2, 0])
+    teacher = torch.rand(cfg.length) < 0.5
+    eps = torch.randn(4, cfg.latent_dim)
+
+    def grads(out):
+        model.zero_grad()
+        (out["motion"].square().mean() + 2 * out["free_motion"].square().mean()).backward()
+        return [p.grad.clone() for p in model.parameters()]
+
+    shared = grads(model(motion, labels, eps=eps, teacher=teacher, free=True))
+    out = model(motion, labels, eps=eps, teacher=teacher)
+    out["free_motion"] = model.decode(out["z"], labels, motion[:, -1, 0])[1]
+    separate = grads(out)
+    assert all(torch.allclose(a, b, rtol=1e-4, atol=1e-7) for a, b in zip(shared, separate))
+    assert any(a.abs().sum() > 0 for a in shared)
+
+
 def test_condition_is_the_flattened_outer_product():
     onehot = torch.tensor([[0.0, 1.0, 0.0]])
     z = torch.tensor([[1.0, 2.0]])

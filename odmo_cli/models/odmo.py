@@ -183,20 +183,34 @@ class MotionGenerator(nn.Module):
         teacher (T,) bool: at steps where it is True the previous pose fed in is target's (B, T, J*3);
         (B, T) bool: the same choice made for each clip and step.
         """
-        B, T = trajectory.shape[:2]
-        p = self.cfg.n_joints * 3
+        return self.unroll(self.prepare(trajectory, cond), target, teacher)
+
+    def prepare(self, trajectory: torch.Tensor, cond: torch.Tensor) -> tuple:
+        """What every unroll of one (trajectory, cond) shares: the trajectory encoder's final state
+        and the per-step inputs that do not depend on the previous pose. Computing it once for a
+        teacher-forced and a free-running unroll saves most of the second decode (the sequence
+        LSTMs cost more than the 2-cell step loop)."""
+        T = trajectory.shape[1]
         _, (h, c) = self.traj_rnn(self.traj_act(self.traj_embed(trajectory)))  # (2, B, H) each
-        state = [(h[0], c[0]), (h[1], c[1])]
-        w_prev, w_rest = self.embed.weight[:, :p], self.embed.weight[:, p:]
+        w_rest = self.embed.weight[:, self.cfg.n_joints * 3:]
         t_frac = torch.arange(1, T + 1, dtype=cond.dtype, device=cond.device) / T  # (T,)
         fixed = F.linear(cond, w_rest[:, :-1], self.embed.bias)  # (B, H)
         fixed = (fixed[:, None, :] + t_frac[None, :, None] * w_rest[:, -1]).unbind(1)  # T x (B, H)
+        return ((h[0], c[0]), (h[1], c[1])), fixed
+
+    def unroll(self, prepared: tuple, target: torch.Tensor | None = None,
+               teacher: torch.Tensor | None = None) -> torch.Tensor:
+        """The autoregressive pose decoder from `prepare`'s output -> poses (B, T, J*3); teacher as in forward."""
+        (s0, s1), fixed = prepared
+        state = [s0, s1]
+        B, T, p = len(fixed[0]), len(fixed), self.cfg.n_joints * 3
+        w_prev = self.embed.weight[:, :p]
         if target is not None and teacher is not None and bool(teacher.any()):
             prev_real = torch.cat([torch.zeros_like(target[:, :1]), target[:, :-1]], dim=1)  # (B, T, P)
             real_part = F.linear(prev_real, w_prev).unbind(1)  # T x (B, H): all teacher-forced inputs
         else:
             teacher = None
-        prev = trajectory.new_zeros(B, p)
+        prev = fixed[0].new_zeros(B, p)
         outputs = []
         for t in range(T):
             if teacher is not None and teacher.dim() == 2:
@@ -229,12 +243,21 @@ class ODMO(nn.Module):
                target: torch.Tensor | None = None, teacher: torch.Tensor | None = None
                ) -> tuple[torch.Tensor, torch.Tensor]:
         """Code (B, D), labels (B,), end point (B, 3) -> (trajectory (B, T, 3), motion (B, T, J, 3))."""
+        trajectory, prepared = self._plan(z, labels, end_point)
+        return trajectory, self._poses(prepared, target, teacher)
+
+    def _plan(self, z: torch.Tensor, labels: torch.Tensor, end_point: torch.Tensor) -> tuple[torch.Tensor, tuple]:
+        """The trajectory (B, T, 3) and what the pose decoder's unrolls of it share."""
         onehot = F.one_hot(labels, self.cfg.n_classes).to(z.dtype)
         cond = condition(onehot, z)
         trajectory = torch.cumsum(self.trajectory(cond, end_point), dim=1)  # r_t = sum of v, r_0 = 0
+        return trajectory, self.motion.prepare(trajectory, cond)
+
+    def _poses(self, prepared: tuple, target: torch.Tensor | None = None,
+               teacher: torch.Tensor | None = None) -> torch.Tensor:
         flat_target = target.flatten(2) if target is not None else None
-        motion = self.motion(trajectory, cond, flat_target, teacher)
-        return trajectory, motion.view(*motion.shape[:2], self.cfg.n_joints, 3)
+        motion = self.motion.unroll(prepared, flat_target, teacher)
+        return motion.view(*motion.shape[:2], self.cfg.n_joints, 3)
 
     def forward(self, motion: torch.Tensor, labels: torch.Tensor, generator: torch.Generator | None = None,
                 teacher: torch.Tensor | None = None, eps: torch.Tensor | None = None,
@@ -246,8 +269,9 @@ class ODMO(nn.Module):
         if eps is None:
             eps = torch.randn(mu.shape, generator=generator, dtype=mu.dtype, device=mu.device)
         z = mu + eps * torch.exp(0.5 * logvar)
-        trajectory, recon = self.decode(z, labels, motion[:, -1, 0], target=motion, teacher=teacher)
-        out = {"mu": mu, "logvar": logvar, "z": z, "trajectory": trajectory, "motion": recon}
-        if free:
-            out["free_motion"] = self.decode(z, labels, motion[:, -1, 0])[1]
+        trajectory, prepared = self._plan(z, labels, motion[:, -1, 0])
+        out = {"mu": mu, "logvar": logvar, "z": z, "trajectory": trajectory,
+               "motion": self._poses(prepared, motion, teacher)}
+        if free:  # the same trajectory, decoded again without teacher forcing
+            out["free_motion"] = self._poses(prepared)
         return out
