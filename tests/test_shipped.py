@@ -198,8 +198,8 @@ def test_unmet_bars_names_each_miss():
         "73.44, FID 1.214, Multimodality 2.19 (real 1.57), dist_e 0.023 do not; warm up 25, boxing 42, eat 50, "
         "drink 55, lift dumbbell 55, phone 68"))),
     pytest.param("cmu", "cmu_mocap", marks=pytest.mark.xfail(strict=True, reason=(
-        "the shipped file predates the new defaults (2026-12-01): Acc 71.68, FID 2.374, speed 0.34, "
-        "amplitude 0.71, dist_e 0.364; jump 11, climb 50, dance 55"))),
+        "trained with the new defaults (2026-12-02): speed 0.83, amplitude 0.89, Diversity and "
+        "Multimodality meet their bars; Acc 79.73, FID 0.793, dist_e 0.676 do not; jump 56, dance 49"))),
 ])
 def test_shipped_odmo_meets_its_quality_bar(short, dataset, data_dir):
     """The default protocol (10 repeats, the paper's samples per action, the shipped classifier),
