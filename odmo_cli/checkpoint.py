@@ -18,7 +18,7 @@ and `load_model`, which turns any generator checkpoint into a ready model.
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 
@@ -30,7 +30,7 @@ from odmo_cli.errors import UserError
 from odmo_cli.io import atomic_path
 from odmo_cli.latent import ActionModes, fit_modes
 from odmo_cli.models import a2m, dvgan
-from odmo_cli.models.odmo import ODMO, ODMOConfig
+from odmo_cli.models.odmo import ODMO, ROOTS, ODMOConfig
 
 FORMAT_VERSION = 1  # bump when a reader of the old format would misread a new file
 
@@ -242,6 +242,12 @@ class LoadedODMO(Loaded):
         self.mixtures = {"mode-preserving": [ActionModes.from_plain(m) for m in modes["actions"]],
                          "conventional": [ActionModes.from_plain(m) for m in modes["conventional"]]}
 
+    def set_root(self, root: str) -> None:
+        """Read decoded motions' roots from `root` (ODMOConfig.root) instead of the file's choice."""
+        if root not in ROOTS:
+            raise UserError(f"unknown --root {root!r}; valid: {', '.join(ROOTS)}")
+        self.model.cfg = replace(self.model.cfg, root=root)
+
     def action_modes(self, action: int, sampling: str = "mode-preserving") -> ActionModes:
         return self.mixtures[sampling][action]
 
@@ -253,16 +259,19 @@ class LoadedBaseline(Loaded):
     kind: str = ""
 
 
-def load_model(spec: str | Path | None, device: torch.device | None = None) -> LoadedODMO | LoadedBaseline:
+def load_model(spec: str | Path | None, device: torch.device | None = None,
+               root: str | None = None) -> LoadedODMO | LoadedBaseline:
     """Any generator checkpoint (path or shipped short name; None: the default), ready to sample
-    on `device` (None: the CPU)."""
+    on `device` (None: the CPU). `root`: ODMO's root readout (ODMOConfig.root; None: the file's)."""
     path = checkpoint_path(spec)
     ckpt = load_checkpoint(path)
     kind = ckpt.get("kind")
     if kind == "odmo":
-        return _odmo_from(path, ckpt, device)
+        return _odmo_from(path, ckpt, device, root)
     if kind not in BASELINES:
         raise UserError(f"{path} holds a {kind!r} model; generators are: odmo, {', '.join(BASELINES)}")
+    if root is not None:
+        raise UserError(f"--root is ODMO's (its trajectory generator); {path} holds a {kind} model")
     model = BASELINES[kind](ckpt)
     model.eval()
     if device is not None:
@@ -270,17 +279,18 @@ def load_model(spec: str | Path | None, device: torch.device | None = None) -> L
     return LoadedBaseline(model, ckpt["dataset"], str(path), kind)
 
 
-def load_odmo(spec: str | Path | None, device: torch.device | None = None) -> LoadedODMO:
-    """An ODMO checkpoint (path or shipped short name; None: the default), on `device` (None: CPU)."""
+def load_odmo(spec: str | Path | None, device: torch.device | None = None, root: str | None = None) -> LoadedODMO:
+    """An ODMO checkpoint (path or shipped short name; None: the default), on `device` (None: CPU);
+    `root` as in load_model."""
     path = checkpoint_path(spec)
     ckpt = load_checkpoint(path)
     if ckpt.get("kind") != "odmo":
         raise UserError(f"{path} holds a {ckpt.get('kind')!r} model; this command needs an ODMO checkpoint "
                         "(modes, latent codes and end points are ODMO's)")
-    return _odmo_from(path, ckpt, device)
+    return _odmo_from(path, ckpt, device, root)
 
 
-def _odmo_from(path: Path, ckpt: dict, device: torch.device | None = None) -> LoadedODMO:
+def _odmo_from(path: Path, ckpt: dict, device: torch.device | None = None, root: str | None = None) -> LoadedODMO:
     if "latent_bank" not in ckpt:
         raise UserError(f"{path} has no latent bank: its training did not finish (resume it to the end)")
     with torch.device("meta"):  # no random initialisation: every weight comes from the file
@@ -291,4 +301,7 @@ def _odmo_from(path: Path, ckpt: dict, device: torch.device | None = None) -> Lo
     if device is not None:
         model.to(device)
     modes = ckpt.get("modes") or fit_modes(ckpt["latent_bank"], model.cfg.n_classes)
-    return LoadedODMO(model, ckpt["dataset"], str(path), ckpt["latent_bank"], modes)
+    loaded = LoadedODMO(model, ckpt["dataset"], str(path), ckpt["latent_bank"], modes)
+    if root is not None:
+        loaded.set_root(root)
+    return loaded

@@ -77,6 +77,20 @@ def test_a_compared_model_can_sample_conventionally(lines_model, lines_folder, l
         run_evaluation([f"{lines_model}@sideways"], str(lines_folder), None, str(lines_classifier), EvalConfig())
 
 
+def test_root_readout_applies_to_every_odmo_row(lines_model, lines_folder, lines_classifier):
+    """--root decoder reads the same codes with the pose decoder's own root: the end points move
+    (dist_e changes), the body about the root does not (bone lengths stay; these toy lines do not
+    move about their root, so they have no speed or amplitude ratios)."""
+    runs = {root: run_evaluation([str(lines_model)], str(lines_folder), None, str(lines_classifier),
+                                 EvalConfig(repeats=2, per_action=10, root=root), with_customization=True)
+            for root in (None, "trajectory", "decoder")}
+    dist = {root: r.customization[0]["metrics"]["dist_e"][0] for root, r in runs.items()}
+    assert dist[None] == dist["trajectory"] != dist["decoder"]
+    rows = {root: r.rows[1]["metrics"] for root, r in runs.items()}
+    assert rows["decoder"]["bone_std"][0] == pytest.approx(rows["trajectory"]["bone_std"][0], abs=1e-6)
+    assert runs["decoder"].config["root"] == "decoder"
+
+
 def test_same_seed_same_numbers(lines_model, lines_folder, lines_classifier):
     a = evaluate(lines_model, lines_folder, lines_classifier, repeats=2)
     b = evaluate(lines_model, lines_folder, lines_classifier, repeats=2)
@@ -111,7 +125,7 @@ def test_cli_eval_table_and_json(lines_model, lines_folder, lines_classifier, tm
     assert res.exit_code == 0, res.output
     assert "Real" in res.stdout and "Acc" in res.stdout
     report = json.loads(out.read_text())
-    assert report["config"] == {"repeats": 2, "per_action": 10, "sampling": "mode-preserving", "seed": 0}
+    assert report["config"] == {"repeats": 2, "per_action": 10, "sampling": "mode-preserving", "seed": 0, "root": None}
     assert [r["name"] for r in report["rows"]] == ["Real motions", "lines.pt"]
 
 
@@ -120,6 +134,7 @@ def test_cli_eval_table_and_json(lines_model, lines_folder, lines_classifier, tm
     (["--classifier", "missing.pt"], "checkpoint not found"),
     (["--repeats", "0"], "--repeats must be positive"),
     (["--sampling", "nope"], "unknown sampling 'nope'"),
+    (["--root", "hips"], "unknown --root 'hips'; valid: trajectory, decoder"),
 ])
 def test_cli_eval_bad_input(lines_model, lines_folder, tmp_path, extra, message):
     res = CliRunner().invoke(app, ["eval", "--model", str(lines_model), "--dataset", str(lines_folder),

@@ -91,6 +91,31 @@ def test_end_points_are_reached(lines_model):
     assert np.linalg.norm(far.reached[:, [0, 2]].mean(0) - [-0.6, 0.4]) < 0.1
 
 
+def test_root_readout_is_chosen_at_load(lines_model, tmp_path):
+    """The default readout puts the root on the trajectory (the end point is the trajectory's);
+    --root decoder gives the pose decoder's own root and the same body about it."""
+    placed, own = load_odmo(lines_model), load_odmo(lines_model, root="decoder")
+    assert placed.model.cfg.root == "trajectory" and own.model.cfg.root == "decoder"
+    a = sample(placed, ["glide"], 5, seed=0, end="0.6,-0.4").motions
+    b = sample(own, ["glide"], 5, seed=0, end="0.6,-0.4").motions
+    assert not np.allclose(a[:, :, 0], b[:, :, 0], atol=1e-4)
+    assert np.allclose(a - a[:, :, :1], b - b[:, :, :1], atol=1e-5)
+    res = CliRunner().invoke(app, ["sample", "--model", str(lines_model), "--action", "glide", "--n", "5",
+                                   "--end", "0.6,-0.4", "--root", "decoder", "--out", str(tmp_path / "d.npz")])
+    assert res.exit_code == 0, res.output
+    assert np.allclose(np.load(tmp_path / "d.npz")["motions"], b, atol=1e-5)
+
+
+def test_root_readout_refused_where_it_does_not_apply(lines_model, noise_checkpoint, tmp_path):
+    res = CliRunner().invoke(app, ["sample", "--model", str(lines_model), "--action", "glide", "--root", "hips",
+                                   "--out", str(tmp_path / "x.npz")])
+    assert res.exit_code == 2 and res.stderr.count("\n") == 1
+    assert "unknown --root 'hips'; valid: trajectory, decoder" in res.stderr and "Traceback" not in res.stderr
+    with pytest.raises(UserError, match="--root is ODMO's"):
+        load_model(noise_checkpoint, root="decoder")
+    assert not (tmp_path / "x.npz").exists()
+
+
 def test_end_segment_protocol(lines_model):
     batch = sample(load_odmo(lines_model), ["crouch"], 3, seed=1, end_from="0,0", end_to="1,1", steps=5)
     assert len(batch.motions) == 15

@@ -186,7 +186,7 @@ def test_free_decode_is_the_sampling_decode_of_the_same_codes():
     """forward(free=True) adds the decode of the same codes without teacher forcing, which is what
     sampling runs; the free-running energy term is then computed on it (and is 0 without it)."""
     torch.manual_seed(0)
-    cfg = tiny_config()
+    cfg = tiny_config(root="decoder")  # the losses see the pose decoder's own output
     model = ODMO(cfg).eval()
     motion = torch.randn(4, cfg.length, cfg.n_joints, 3).cumsum(1)
     labels = torch.tensor([0, 1, 2, 0])
@@ -208,7 +208,7 @@ def test_shared_trajectory_gives_the_gradients_of_two_separate_decodes():
     """The free pass reuses the teacher-forced pass's trajectory and trajectory encoding; the
     gradients are those of decoding the same codes twice (up to rounding)."""
     torch.manual_seed(0)
-    cfg = tiny_config()
+    cfg = tiny_config(root="decoder")
     model = ODMO(cfg).train()
     motion = torch.randn(4, cfg.length, cfg.n_joints, 3).cumsum(1)
     labels = torch.tensor([0, 1, 2, 0])
@@ -246,6 +246,27 @@ def test_shapes_and_trajectory_is_cumulative():
     onehot = torch.nn.functional.one_hot(torch.tensor([0, 1, 2]), 3).float()
     vel = model.trajectory(condition(onehot, out["z"]), motion[:, -1, 0])
     assert torch.allclose(out["trajectory"], torch.cumsum(vel, 1), atol=1e-6)
+
+
+def test_root_readout():
+    """root="trajectory" places the pose decoder's body (joints about its root, unchanged) on the
+    trajectory generator's path; "decoder" keeps the decoder's own root; training sees the latter."""
+    torch.manual_seed(0)
+    own = ODMO(tiny_config(root="decoder")).eval()
+    placed = ODMO(tiny_config()).eval()
+    placed.load_state_dict(own.state_dict())
+    z, lab, end = torch.randn(3, 5), torch.tensor([0, 1, 2]), torch.randn(3, 3)
+    traj_a, a = own.decode(z, lab, end)
+    traj_b, b = placed.decode(z, lab, end)
+    assert torch.equal(traj_a, traj_b)
+    assert torch.allclose(b[:, :, 0], traj_b, atol=1e-6)  # the root is the trajectory, every frame
+    assert not torch.allclose(a[:, :, 0], traj_a, atol=1e-3)  # an untrained decoder's root is elsewhere
+    assert torch.allclose(b - b[:, :, :1], a - a[:, :, :1], atol=1e-6)  # the same body about the root
+    motion = torch.randn(3, 8, 4, 3)
+    assert torch.equal(own(motion, lab, eps=torch.zeros(3, 5))["motion"],
+                       placed(motion, lab, eps=torch.zeros(3, 5))["motion"])  # training's output: the decoder's
+    with pytest.raises(ValueError, match="root must be one of trajectory, decoder"):
+        tiny_config(root="warp")
 
 
 def test_minus_re_variant_ignores_the_end_point():

@@ -120,6 +120,9 @@ DemoOpt = Annotated[bool, typer.Option("--demo", help="Use the tiny demo subset 
 ModelOpt = Annotated[Optional[str], typer.Option(
     "--model", help="Checkpoint path, or a shipped model: humanact12 (default), cmu.")]
 OutOpt = Annotated[Path, typer.Option("--out", help="Samples file to write (.npz).")]
+RootOpt = Annotated[Optional[str], typer.Option(
+    "--root", help="ODMO: where a motion's root comes from: trajectory (the path the end point conditions; "
+                   "the default) or decoder (the pose decoder's own root joint, as in the paper); docs/generation.md.")]
 EndOpt = Annotated[Optional[str], typer.Option("--end", help="End point: x,z (ground plane) or x,y,z.")]
 DeviceOpt = Annotated[str, typer.Option("--device", help="Where to compute: auto (the best present: CUDA, else MPS, "
                                                          "else CPU), cpu (the default), cuda, cuda:N or mps.")]

@@ -8,7 +8,7 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from odmo_cli.cli.common import (Command, DataOpt, DeviceOpt, JsonOpt, ModelOpt, SeedOpt, WideOpt, app, console, device_for,
+from odmo_cli.cli.common import (Command, DataOpt, DeviceOpt, JsonOpt, ModelOpt, RootOpt, SeedOpt, WideOpt, app, console, device_for,
                                  err_console, print_json)
 from odmo_cli.errors import UserError
 
@@ -33,7 +33,7 @@ def evaluate(
     held_out: Annotated[bool, typer.Option("--held-out", help="Also a row for the real clips the classifier never trained on (odmo classifiers).", metavar="")] = False,
     by_action: Annotated[bool, typer.Option("--by-action", help="Also print each row's accuracy, speed and amplitude ratios per action.", metavar="")] = False,
     out: Annotated[Optional[Path], typer.Option("--out", help="Also write the full report (every repeat) as JSON here.")] = None,
-    data: DataOpt = None, device: DeviceOpt = "cpu", seed: SeedOpt = 0, as_json: JsonOpt = False,
+    root: RootOpt = None, data: DataOpt = None, device: DeviceOpt = "cpu", seed: SeedOpt = 0, as_json: JsonOpt = False,
     wide: WideOpt = False,
 ):
     """The evaluation protocol: Acc, FID, Diversity, Multimodality, n-APD, bone std, and the speed and
@@ -42,7 +42,7 @@ def evaluate(
     from odmo_cli.io import atomic_path
 
     dev = device_for(device)
-    cfg = EvalConfig(repeats=repeats, per_action=per_action, sampling=sampling, seed=seed)
+    cfg = EvalConfig(repeats=repeats, per_action=per_action, sampling=sampling, seed=seed, root=root)
     others = list(compare or []) + list(checkpoints or [])
     # the shipped default joins only when nothing else is named: `--compare a.pt b.pt` is a table of a and b
     models = ([model] if model or not (samples or others) else []) + others

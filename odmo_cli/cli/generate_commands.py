@@ -8,7 +8,7 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from odmo_cli.cli.common import (Command, DataOpt, DeviceOpt, EndOpt, JsonOpt, ModelOpt, OutOpt, SeedOpt, UpOpt, WideOpt,
+from odmo_cli.cli.common import (Command, DataOpt, DeviceOpt, EndOpt, JsonOpt, ModelOpt, OutOpt, RootOpt, SeedOpt, UpOpt, WideOpt,
                                  app, console, device_for, err_console, print_json)
 from odmo_cli.errors import UserError
 
@@ -80,7 +80,7 @@ def sample_cmd(
     gif: Annotated[Optional[Path], typer.Option("--gif", help="Also render the first motions to a GIF.")] = None,
     bvh: Annotated[Optional[Path], typer.Option("--bvh", help="Also write one BVH file per motion into this folder.")] = None,
     up: UpOpt = "dataset",
-    units: UnitsOpt = "cm", floor: FloorOpt = True, helpers: HelpersOpt = False,
+    units: UnitsOpt = "cm", floor: FloorOpt = True, helpers: HelpersOpt = False, root: RootOpt = None,
     device: DeviceOpt = "cpu", seed: SeedOpt = 0, as_json: JsonOpt = False,
 ):
     """Generate motions of the given actions (the samples file is described in docs/formats.md)."""
@@ -94,7 +94,7 @@ def sample_cmd(
     if mode is not None and mode_weights is not None:
         raise UserError("give either --mode or --mode-weights, not both")
     weights = _floats(mode_weights, "--mode-weights") if mode_weights is not None else None
-    loaded = load_model(model, dev)
+    loaded = load_model(model, dev, root)
     batch = sample(loaded, action, n, seed, mode, weights, sampling, end, end_from, end_to, steps, lazy=True)
     batch.save(out, up, loaded)  # decodes batch by batch while writing: memory stays flat in n
     if gif is not None:
@@ -200,14 +200,14 @@ def interpolate_cmd(
     to_code: Annotated[Optional[int], typer.Option("--to-code", help="End at this latent-bank code (an index; instead of --to-mode).")] = None,
     steps: Annotated[int, typer.Option("--steps", help="Motions on the line between the two ends, both included.")] = 8,
     end: EndOpt = None, out: OutOpt = Path("interpolation.npz"), model: ModelOpt = None, up: UpOpt = "dataset",
-    device: DeviceOpt = "cpu", seed: SeedOpt = 0, as_json: JsonOpt = False,
+    root: RootOpt = None, device: DeviceOpt = "cpu", seed: SeedOpt = 0, as_json: JsonOpt = False,
 ):
     """Blend two modes (or two codes) of an action: one motion per step on the line between them.
     Without --from/--to: the action's first two modes (an action with one mode: its first and last codes)."""
     from odmo_cli.checkpoint import load_odmo
     from odmo_cli.generation.generate import interpolate
 
-    loaded = load_odmo(model, device_for(device))
+    loaded = load_odmo(model, device_for(device), root)
     batch = interpolate(loaded, action, steps, from_mode, to_mode, from_code, to_code, end, seed)
     batch.save(out, up)
     _summary(batch, out, as_json)

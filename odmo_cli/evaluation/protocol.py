@@ -48,6 +48,7 @@ class EvalConfig:
     sampling: str = "mode-preserving"
     seed: int = 0
     workers: int = 0  # sets evaluated side by side (0: one per core, at most 4); the numbers do not depend on it
+    root: str | None = None  # ODMO's root readout (ODMOConfig.root) for every ODMO row; None: each file's own
 
     def n_for(self, dataset: str) -> int:
         return self.per_action or DEFAULT_PER_ACTION.get(dataset, 200)
@@ -382,6 +383,9 @@ def run_evaluation(models: list[str | None], dataset: str | None, data, classifi
     start = time.perf_counter()
     specs = [model_spec(m) for m in (models or ([] if samples else [None]))]
     loaded = [load_model(path, device) for path, _ in specs]
+    for m in loaded:
+        if cfg.root is not None and isinstance(m, LoadedODMO):  # baselines have no trajectory generator
+            m.set_root(cfg.root)
     name = dataset or (loaded[0].dataset["name"] if loaded else samples_dataset(Path(samples[0])))
     manifest, root = resolve(name, data)
     for m in loaded:
@@ -402,7 +406,8 @@ def run_evaluation(models: list[str | None], dataset: str | None, data, classifi
     val = held_out_clips(classifier, clips) if held_out else None  # fail before the slow part
     real = real_sets(clips, classifier, cfg)
     report = Report(manifest.name, str(clf_path), {"repeats": cfg.repeats, "per_action": cfg.n_for(manifest.name),
-                                                  "sampling": cfg.sampling, "seed": cfg.seed})
+                                                  "sampling": cfg.sampling, "seed": cfg.seed,
+                                                  "root": cfg.root})
     report.rows.append(evaluate_real(real, cfg))
     if val is not None:
         report.rows.append(evaluate_held_out(clips, val, classifier, real, cfg))

@@ -15,6 +15,9 @@ import torch.nn.functional as F
 from odmo_cli.config import Config
 
 
+ROOTS = ("trajectory", "decoder")  # ODMOConfig.root
+
+
 @dataclass
 class ODMOConfig(Config):
     n_joints: int = 24
@@ -55,12 +58,18 @@ class ODMOConfig(Config):
     # data; the free-running decoder is what drifts to a slow average. Trained from
     # TrainConfig.free_from on (by default once teacher forcing has decayed).
     free_energy_weight: float = 0.0
-
-
+    # where a decoded motion's root comes from (decode: sampling and the training report; training's
+    # losses always see the pose decoder's own output). "decoder": the pose decoder's root joint, as in
+    # the paper and the release, kept near the trajectory by L_cons only. "trajectory": the body the pose
+    # decoder drew about its root, placed on the trajectory generator's path, which is what the end point
+    # conditions (not in the paper nor the release; docs/generation.md gives the measurements).
+    root: str = "trajectory"
 
     def __post_init__(self):
         if self.traj_loss not in ("position", "velocity"):
             raise ValueError(f"traj_loss must be position or velocity, got {self.traj_loss!r}")
+        if self.root not in ROOTS:
+            raise ValueError(f"root must be one of {', '.join(ROOTS)}, got {self.root!r}")
         if not (self.sigma2 > 0 and self.recon_weight > 0):
             raise ValueError(f"sigma2 and recon_weight must be positive, got {self.sigma2} and {self.recon_weight}")
         if min(self.vel_weight, self.energy_weight, self.free_energy_weight) < 0:
@@ -242,9 +251,13 @@ class ODMO(nn.Module):
     def decode(self, z: torch.Tensor, labels: torch.Tensor, end_point: torch.Tensor,
                target: torch.Tensor | None = None, teacher: torch.Tensor | None = None
                ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Code (B, D), labels (B,), end point (B, 3) -> (trajectory (B, T, 3), motion (B, T, J, 3))."""
+        """Code (B, D), labels (B,), end point (B, 3) -> (trajectory (B, T, 3), motion (B, T, J, 3)),
+        the motion's root as cfg.root says."""
         trajectory, prepared = self._plan(z, labels, end_point)
-        return trajectory, self._poses(prepared, target, teacher)
+        motion = self._poses(prepared, target, teacher)
+        if self.cfg.root == "trajectory":
+            motion = motion - motion[:, :, :1] + trajectory[:, :, None]  # the same body about its root, on T-hat
+        return trajectory, motion
 
     def _plan(self, z: torch.Tensor, labels: torch.Tensor, end_point: torch.Tensor) -> tuple[torch.Tensor, tuple]:
         """The trajectory (B, T, 3) and what the pose decoder's unrolls of it share."""
