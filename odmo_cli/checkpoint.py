@@ -101,7 +101,8 @@ def describe_checkpoint(path: str | Path) -> dict:
         "file": str(path), "format_version": ckpt.get("format_version"), "kind": ckpt["kind"],
         "parameters": n_params, "weights": ckpt.get("weights_dtype", "float32"),
         "epoch": ckpt.get("epoch"), "dataset": ckpt.get("dataset", {}),
-        "config": ckpt["config"], "train_config": ckpt.get("train_config", {}), **banks,
+        "config": ckpt["config"], "train_config": ckpt.get("train_config", {}),
+        **({"init": ckpt["init"]} if ckpt.get("init") else {}), **banks,  # the stage it started from
         "last_epoch_losses": {k: round(v, 5) if isinstance(v, float) else v for k, v in last[0].items()},
         "report": ckpt.get("report", {}),
     }

@@ -385,6 +385,34 @@ def test_free_running_term_changes_nothing_before_it_starts(demo_clips, tmp_path
     assert not all(torch.equal(w_off[k], w_on[k]) for k in w_off)
 
 
+def test_init_starts_a_stage_from_a_finished_model(demo_clips, tmp_path):
+    """--init: the weights and model config of a finished file (loss options on top), this run's
+    schedule and a fresh optimizer; the checkpoint says where it started. Not with --resume."""
+    first = tmp_path / "first.pt"
+    small = {"latent_dim": 4, "encoder_fc": 16, "traj_hidden": 16, "motion_hidden": 16, "energy_weight": 0.5}
+    train_odmo(demo_clips, TrainConfig(epochs=2, batch_size=8, val_every=0, threads=1), first, small)
+    start = torch.load(first, weights_only=True)
+    tc = TrainConfig(epochs=1, batch_size=8, val_every=0, threads=1, lr=1e-9, lr_final=1e-9, tf_start=0.0, tf_end=0.0)
+    second = tmp_path / "second.pt"
+    train_odmo(demo_clips, tc, second, {"free_energy_weight": 1.0}, init=first)
+    ckpt = torch.load(second, weights_only=True)
+    assert ckpt["config"] == {**start["config"], "free_energy_weight": 1.0}  # not the preset's scales
+    assert ckpt["init"] == {"source": "first.pt", "epoch": 2, "train_config": start["train_config"]}
+    assert ckpt["epoch"] == 1 and ckpt["train_config"]["tf_end"] == 0.0
+    moved = max(float((ckpt["state_dict"][k] - v).abs().max()) for k, v in start["state_dict"].items()
+                if v.is_floating_point() and "running" not in k and "num_batches" not in k)
+    assert moved < 1e-5  # a learning rate of 1e-9: the first stage's weights, as they were
+    fresh = tmp_path / "fresh.pt"
+    train_odmo(demo_clips, tc, fresh, small)
+    assert torch.load(fresh, weights_only=True)["state_dict"]["motion.out.weight"].ne(
+        ckpt["state_dict"]["motion.out.weight"]).any()
+    with pytest.raises(UserError, match="either --init"):
+        train_odmo(demo_clips, tc, tmp_path / "x.pt", init=first, resume=second)
+    res = CliRunner().invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--init", str(first),
+                                   "--resume", str(second), "--out", str(tmp_path / "y.pt")])
+    assert res.exit_code == 2 and "either --init" in res.stderr and "Traceback" not in res.stderr
+
+
 def test_teacher_forcing_decays_linearly():
     tc = TrainConfig(epochs=11, tf_start=1.0, tf_end=0.3)
     assert tc.teacher_rate(0) == 1.0

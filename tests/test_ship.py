@@ -79,6 +79,8 @@ def test_cli_refuses_a_dataset_without_recipe(tmp_path):
 def test_build_writes_both_files_deterministically(lines_folder, tmp_path, monkeypatch):
     """The whole pipeline on the tiny lines dataset with a tiny recipe, twice with the same seed."""
     tiny = {"odmo": {"epochs": 3, "batch_size": 40, "pairs_per_epoch": 80, "val_every": 0, "threads": 1},
+            "odmo_stage2": {"epochs": 2, "batch_size": 40, "pairs_per_epoch": 80, "val_every": 0, "threads": 1,
+                            "tf_start": 0.0, "tf_end": 0.0, "lr": 3e-4, "lr_final": 3e-4},
             "classifier": {"epochs": 2, "threads": 1, "speed": 1.0}}
     monkeypatch.setitem(ship.RECIPES, str(lines_folder), tiny)
     monkeypatch.setitem(checkpoint.SHIPPED, str(lines_folder),
@@ -89,11 +91,36 @@ def test_build_writes_both_files_deterministically(lines_folder, tmp_path, monke
         out.mkdir()
         reports = ship.build(str(lines_folder), None, out, seed=3, say=lambda m: None)
         assert sorted(p.name for p in out.iterdir()) == ["classifier_lines.pt", "odmo_lines.pt"]
-        assert reports["odmo"]["epochs"] == 3 and "val_accuracy" in reports["classifier"]
+        assert reports["odmo"]["epochs"] == 2 and "val_accuracy" in reports["classifier"]
         clf = torch.load(out / "classifier_lines.pt", weights_only=True)  # what --held-out and eval need, no optimizer
         assert {"split", "report", "state_dict"} <= set(clf) and {"optimizer", "rng"}.isdisjoint(clf)
         ckpt = torch.load(out / "odmo_lines.pt", weights_only=True)
         assert ckpt["kind"] == "odmo" and ckpt["train_config"]["seed"] == 3
+        # the second stage started from the first stage's compact file and says so
+        assert ckpt["train_config"]["tf_end"] == 0.0 and ckpt["epoch"] == 2
+        assert ckpt["init"]["source"] == "odmo_lines.stage1.pt" and ckpt["init"]["epoch"] == 3
+        assert ckpt["init"]["train_config"]["tf_end"] == 0.3
         weights.append(ckpt["state_dict"])
         assert len(sample(load_model(out / "odmo_lines.pt"), ["all"], 2, seed=0)) > 0
     assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
+
+
+def test_build_continues_at_the_stage_it_stopped_in(lines_folder, lines_model, tmp_path, monkeypatch):
+    """A first stage finished by an earlier, interrupted build is not trained again: the second
+    stage starts from its file, which is removed once the shipped file is written."""
+    tiny = {"odmo": {"epochs": 3, "batch_size": 40, "pairs_per_epoch": 80, "val_every": 0, "threads": 1},
+            "odmo_stage2": {"epochs": 1, "batch_size": 40, "pairs_per_epoch": 80, "val_every": 0, "threads": 1,
+                            "tf_start": 0.0, "tf_end": 0.0}}
+    monkeypatch.setitem(ship.RECIPES, str(lines_folder), tiny)
+    monkeypatch.setitem(checkpoint.SHIPPED, str(lines_folder),
+                        {"short": "lines", "odmo": "odmo_lines.pt", "classifier": "classifier_lines.pt"})
+    save_checkpoint(tmp_path / "odmo_lines.stage1.pt", ship.compact(load_checkpoint(lines_model)))
+    calls, train = [], ship.train_odmo
+    monkeypatch.setattr(ship, "train_odmo", lambda *a, **kw: calls.append(a[1].epochs) or train(*a, **kw))
+    epochs = []
+    ship.build(str(lines_folder), None, tmp_path, skip_classifier=True, say=lambda m: None,
+               progress=lambda log: epochs.append(log["epoch"]))
+    assert calls == [1] and epochs == [4]  # stage 2 only, counted after stage 1's 3 epochs
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["odmo_lines.pt"]
+    assert load_checkpoint(tmp_path / "odmo_lines.pt")["init"]["epoch"] == 150  # lines_model's length
+    assert ship.total_epochs(str(lines_folder)) == 4

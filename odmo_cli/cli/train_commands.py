@@ -93,6 +93,10 @@ def train_odmo_cmd(
     lr: Annotated[Optional[float], typer.Option("--lr", help="Adam learning rate (default 1e-3, the paper's).")] = None,
     lr_final: Annotated[Optional[float], typer.Option("--lr-final", help="Cosine decay of the rate to this value (default: constant).")] = None,
     tf_epochs: Annotated[int, typer.Option("--tf-epochs", help="Teacher forcing decays 1 -> 0.3 over these epochs (0: all).")] = 0,
+    tf_start: Annotated[Optional[float], typer.Option("--tf-start", help="Teacher-forcing rate at the first epoch (default 1).")] = None,
+    tf_end: Annotated[Optional[float], typer.Option("--tf-end", help="Teacher-forcing rate once decayed (default 0.3, the release's).")] = None,
+    init: Annotated[Optional[Path], typer.Option("--init", help="Start from this finished ODMO checkpoint's weights and model config "
+                                                               "(a new stage: this run's schedule, a fresh optimizer; loss options override).")] = None,
     tf_per: Annotated[Optional[str], typer.Option("--tf-per", help="Teacher-forcing coins: step (one per time step for the batch, the release) or clip.")] = None,
     ablate: Annotated[Optional[list[str]], typer.Option("--ablate", help="Drop a part: es, traj, cons, end-point (repeatable).")] = None,
     same_class: Annotated[Optional[float], typer.Option("--same-class-fraction", help="Share of same-action pairs (default 0.5, as the authors' release; -1: independent random pairs).")] = None,
@@ -133,16 +137,20 @@ def train_odmo_cmd(
     overrides = {"use_es": "es" not in (ablate or []), "use_traj": "traj" not in (ablate or []),
                  "use_cons": "cons" not in (ablate or []), "use_end_point": "end-point" not in (ablate or [])}
     overrides.update(_given(**scales))
+    if init is not None:  # the file's config stands but for what was asked: loss weights, ablations
+        if resume is not None:
+            raise UserError("give either --init (start a new stage from a model's weights) or --resume, not both")
+        overrides = {k: v for k, v in overrides.items() if not k.startswith("use_") or not v}
     lr = 1e-3 if lr is None else lr
     tc = TrainConfig(**_given(epochs=_epochs(resume, epochs), batch_size=batch_size, checkpoint_every=checkpoint_every,
                               val_every=val_every, same_class_fraction=same_class, tf_per=tf_per,
-                              free_from=free_from),
+                              free_from=free_from, tf_start=tf_start, tf_end=tf_end),
                      lr=lr, lr_final=lr if lr_final is None else lr_final, tf_epochs=tf_epochs,
                      seed=seed, threads=threads)
     prints = _start(device, nproc)  # after the options' own checks, before any data is read
     clips = _clips(dataset, data)
     with _epoch_bar(tc.epochs, as_json or not prints) as update, _interruptible(out, prints):
-        result = train_odmo(clips, tc, out, overrides, resume, _log_progress(update, tc.val_every), preset, device)
+        result = train_odmo(clips, tc, out, overrides, resume, _log_progress(update, tc.val_every), preset, device, init)
     if not prints:
         return
     if as_json:
@@ -336,13 +344,13 @@ def ship_cmd(
     data: DataOpt = None, seed: SeedOpt = 0, as_json: JsonOpt = False,
 ):
     """Rebuild the shipped models of a dataset from scratch with its recipe: the evaluation classifier
-    (augmented real clips, cosine-decayed Adam), then ODMO (Adam from 3x the paper's rate, cosine
-    decay, teacher forcing decayed over the first half of the epochs, 2 threads), then compact files
-    (float16, the largest layer as int8 rows). Run it again after an interruption to continue where
-    it stopped. The recipes' numbers: docs/training.md."""
-    from odmo_cli.ship import RECIPES, build, recipe_name
+    (real clips, cosine-decayed Adam), then ODMO (Adam from 3x the paper's rate, cosine decay, teacher
+    forcing decayed over the first half of the epochs, 2 threads; then a stage without teacher
+    forcing), then compact files (float16, the largest layer as int8 rows). Run it again after an
+    interruption to continue where it stopped. The recipes' numbers: docs/training.md."""
+    from odmo_cli.ship import build, recipe_name, total_epochs
 
-    with (_epoch_bar(RECIPES[recipe_name(dataset)]["odmo"]["epochs"], as_json) as update,
+    with (_epoch_bar(total_epochs(recipe_name(dataset)), as_json) as update,
           _interruptible("run the same command again to continue the training")):
         reports = build(dataset, data, out, seed, skip_classifier, _log_progress(update, 10),
                         say=lambda m: None if as_json else err_console.print(m, highlight=False))

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from odmo_cli import metrics
+from odmo_cli.checkpoint import dataset_description, float_state, load_checkpoint
 from odmo_cli.data.dataset import MotionDataset, crops_from_start, pair_indices
 from odmo_cli.data.readers import ClipSet
 from odmo_cli.device import model_device
@@ -132,6 +133,25 @@ class ODMOTrainer(Trainer):
         sums = self.group.sum(sums)
         return {"clips": 2 * n_pairs, "teacher": teacher_rate, **{k: v / n_pairs for k, v in sums.items()}}
 
+    init: dict | None = None  # where the weights started (start_from), kept in every checkpoint
+
+    def start_from(self, ckpt: dict, source: str) -> None:
+        """Start from another finished ODMO checkpoint's weights (a fine-tuning stage: this run's
+        schedule, a fresh optimizer). Its model config must be this run's but for the loss terms."""
+        if ckpt.get("kind") != "odmo":
+            raise UserError(f"--init {source} holds a {ckpt.get('kind')!r} model, not odmo")
+        if ckpt["dataset"] != dataset_description(self.clips):
+            raise UserError(f"--init {source} was trained on {ckpt['dataset']['name']}, not {self.clips.manifest.name}")
+        self.model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in float_state(ckpt).items()})
+        self.init = {"source": source, "epoch": int(ckpt["epoch"]), "train_config": ckpt["train_config"],
+                     **({"init": ckpt["init"]} if ckpt.get("init") else {})}  # the stages before it, if any
+
+    def extra_state(self) -> dict:
+        return {"init": self.init} if self.init else {}
+
+    def load_extra_state(self, ckpt: dict) -> None:
+        self.init = ckpt.get("init")
+
     def validate(self) -> dict[str, float]:
         """Reconstruction error of held-out clips from their mean code, with no teacher forcing."""
         idx = self.val_idx if len(self.val_idx) else self.train_idx
@@ -219,12 +239,22 @@ def finish(trainer: ODMOTrainer) -> dict:
 
 def train_odmo(clips: ClipSet, tc: TrainConfig, out: Path, overrides: dict | None = None,
                resume: Path | None = None, progress: Progress | None = None,
-               preset: str = "odmo", device: str = "cpu") -> TrainResult:
+               preset: str = "odmo", device: str = "cpu", init: Path | None = None) -> TrainResult:
     """Train ODMO on clips (or resume a checkpoint), then write the final checkpoint with its bank.
-    `device`: --device's value; under torchrun (or `launch`) one of several processes."""
+    `init`: start from that finished checkpoint's weights and model config (`overrides` on top; the
+    preset is not applied). `device`: --device's value; under torchrun (or `launch`) one of several processes."""
+    if init is not None and resume is not None:
+        raise UserError("give either --init (start a new stage from a model's weights) or --resume, not both")
     with thread_count(tc.threads), training_group(device) as group:
         if resume is not None:
             trainer = ODMOTrainer.resumed(resume, clips, tc, out, group)
+        elif init is not None:
+            ckpt = load_checkpoint(init)
+            if ckpt.get("kind") != "odmo":
+                raise UserError(f"--init {init} holds a {ckpt.get('kind')!r} model, not odmo")
+            cfg = ODMOConfig.from_dict({**ckpt.get("config", {}), **(overrides or {})})
+            trainer = ODMOTrainer(clips, cfg, tc, out, group)
+            trainer.start_from(ckpt, Path(init).name)
         else:
             trainer = ODMOTrainer(clips, model_config_for(clips, overrides, preset), tc, out, group)
         history = trainer.run(progress)
