@@ -122,9 +122,17 @@ def build(dataset: str, data, out_dir: Path, seed: int = 0, skip_classifier: boo
         reports["classifier"] = train_classifier(clips, tc, work, resume=work if work.is_file() else None)
         save_checkpoint(out_dir / files["classifier"], compact_classifier(load_checkpoint(work)))
         work.unlink()
-    final = out_dir / files["odmo"]
+    reports["odmo"] = _odmo_stages(clips, recipe, out_dir / files["odmo"], seed, progress, say)
+    return reports
+
+
+def _odmo_stages(clips, recipe: dict, final: Path, seed: int, progress: Callable | None,
+                 say: Callable[[str], None]) -> dict:
+    """Train ODMO's stages into `final` (each later stage starts from the previous one's compact
+    file, written beside it and removed at the end); returns the last stage's report."""
+    out_dir = final.parent
     keys = [k for k in ("odmo", "odmo_stage2") if k in recipe]
-    start, offset = None, 0  # the compact file the next stage starts from; epochs before it (the bar)
+    start, offset, report = None, 0, {}  # the file the next stage starts from; epochs before it (the bar)
     for i, key in enumerate(keys):  # a stage finished by an earlier, interrupted build is not redone
         done = final if i == len(keys) - 1 else out_dir / f"{final.stem}.stage{i + 1}.pt"
         work = out_dir / (f"{final.stem}.training.pt" if i == 0 else f"{final.stem}.stage{i + 1}.training.pt")
@@ -135,13 +143,13 @@ def build(dataset: str, data, out_dir: Path, seed: int = 0, skip_classifier: boo
             continue
         resume = work if work.is_file() else None
         tc = TrainConfig(**{**recipe[key], "seed": seed})
-        say(f"training ODMO on {manifest.name}{f', stage {i + 1}' if i else ''} ({tc.epochs} epochs"
+        say(f"training ODMO on {clips.manifest.name}{f', stage {i + 1}' if i else ''} ({tc.epochs} epochs"
             f"{', resuming ' + str(work) if resume else ''})")
         result = train_odmo(clips, tc, work, resume=resume, progress=stage_progress, init=None if resume else start)
         save_checkpoint(done, compact(load_checkpoint(work)))
         work.unlink()
-        reports["odmo"] = {"epochs": result.epochs, **result.report, "train_config": tc.to_dict()}  # the last stage's
+        report = {"epochs": result.epochs, **result.report, "train_config": tc.to_dict()}
         start, offset = done, offset + tc.epochs
     for i in range(1, len(keys)):
         (out_dir / f"{final.stem}.stage{i}.pt").unlink(missing_ok=True)
-    return reports
+    return report
