@@ -92,7 +92,7 @@ def train_odmo_cmd(
     batch_size: Annotated[Optional[int], typer.Option("--batch-size", help="Pairs per step (default 256; each step sees twice as many clips).")] = None,
     lr: Annotated[Optional[float], typer.Option("--lr", help="Adam learning rate (default 1e-3, the paper's).")] = None,
     lr_final: Annotated[Optional[float], typer.Option("--lr-final", help="Cosine decay of the rate to this value (default: constant).")] = None,
-    tf_epochs: Annotated[int, typer.Option("--tf-epochs", help="Teacher forcing decays 1 -> 0.3 over these epochs (0: all).")] = 0,
+    tf_epochs: Annotated[int, typer.Option("--tf-epochs", help="Teacher forcing decays from --tf-start to --tf-end (1 -> 0.3) over these epochs (0: all).")] = 0,
     tf_start: Annotated[Optional[float], typer.Option("--tf-start", help="Teacher-forcing rate at the first epoch (default 1).")] = None,
     tf_end: Annotated[Optional[float], typer.Option("--tf-end", help="Teacher-forcing rate once decayed (default 0.3, the release's).")] = None,
     init: Annotated[Optional[Path], typer.Option("--init", help="Start from this finished ODMO checkpoint's weights and model config "
@@ -345,8 +345,8 @@ def ship_cmd(
 ):
     """Rebuild the shipped models of a dataset from scratch with its recipe: the evaluation classifier
     (real clips, cosine-decayed Adam), then ODMO (Adam from 3x the paper's rate, cosine decay, teacher
-    forcing decayed over the first half of the epochs, 2 threads; then a stage without teacher
-    forcing), then compact files (float16, the largest layer as int8 rows). Run it again after an
+    forcing decayed over the first half of the epochs, 2 threads; on HumanAct12 then a stage without
+    teacher forcing), then compact files (float16, the largest layer as int8 rows). Run it again after an
     interruption to continue where it stopped. The recipes' numbers: docs/training.md."""
     from odmo_cli.ship import build, recipe_name, total_epochs
 
