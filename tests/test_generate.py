@@ -103,7 +103,12 @@ def test_root_readout_is_chosen_at_load(lines_model, tmp_path):
     res = CliRunner().invoke(app, ["sample", "--model", str(lines_model), "--action", "glide", "--n", "5",
                                    "--end", "0.6,-0.4", "--root", "decoder", "--out", str(tmp_path / "d.npz")])
     assert res.exit_code == 0, res.output
-    assert np.allclose(np.load(tmp_path / "d.npz")["motions"], b, atol=1e-5)
+    with np.load(tmp_path / "d.npz") as d:
+        assert np.allclose(d["motions"], b, atol=1e-5) and str(d["root"]) == "decoder"  # the file says which
+    res = CliRunner().invoke(app, ["interpolate", "--model", str(lines_model), "--action", "glide", "--steps", "3",
+                                   "--out", str(tmp_path / "i.npz")])
+    assert res.exit_code == 0, res.output
+    assert str(np.load(tmp_path / "i.npz")["root"]) == "trajectory"
 
 
 def test_root_readout_refused_where_it_does_not_apply(lines_model, noise_checkpoint, tmp_path):

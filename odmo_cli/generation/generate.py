@@ -111,7 +111,8 @@ def sample(loaded: LoadedODMO | LoadedBaseline, actions: list[str], n: int, seed
     labels, codes, ends = np.concatenate(labels), np.concatenate(codes), np.concatenate(ends)
     motions = None if lazy else decode(loaded, codes, labels, ends)
     return MotionBatch(motions, np.array(loaded.actions)[labels], np.concatenate(modes), codes, ends,
-                       loaded.dataset, loaded.source, seed, axes, labels=labels)
+                       loaded.dataset, loaded.source, seed, axes, labels=labels,
+                       extra={"root": np.str_(loaded.model.cfg.root)})
 
 
 @torch.inference_mode()
@@ -173,7 +174,8 @@ def interpolate(loaded: LoadedODMO, action: str, steps: int = 8, from_mode: int 
     ends = _end_points(loaded, a, codes, fixed)
     motions = decode(loaded, codes, np.full(steps, a), ends)
     return MotionBatch(motions, np.array([name] * steps), np.full(steps, -1), codes, ends,
-                       loaded.dataset, loaded.source, seed, axes, extra={"weights": w[:, 0]},
+                       loaded.dataset, loaded.source, seed, axes,
+                       extra={"weights": w[:, 0], "root": np.str_(loaded.model.cfg.root)},
                        labels=np.full(steps, a), note=note)
 
 
