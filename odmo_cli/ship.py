@@ -98,9 +98,14 @@ def compact_classifier(ckpt: dict) -> dict:
     return {k: v for k, v in ckpt.items() if k not in ("optimizer", "rng")}
 
 
+def _stages(recipe: dict) -> list[str]:
+    """The recipe's ODMO stages, in training order."""
+    return [k for k in ("odmo", "odmo_stage2") if k in recipe]
+
+
 def total_epochs(name: str) -> int:
     """ODMO epochs of a recipe, all stages together."""
-    return sum(RECIPES[name][k]["epochs"] for k in ("odmo", "odmo_stage2") if k in RECIPES[name])
+    return sum(RECIPES[name][k]["epochs"] for k in _stages(RECIPES[name]))
 
 
 def build(dataset: str, data, out_dir: Path, seed: int = 0, skip_classifier: bool = False,
@@ -131,7 +136,7 @@ def _odmo_stages(clips, recipe: dict, final: Path, seed: int, progress: Callable
     """Train ODMO's stages into `final` (each later stage starts from the previous one's compact
     file, written beside it and removed at the end); returns the last stage's report."""
     out_dir = final.parent
-    keys = [k for k in ("odmo", "odmo_stage2") if k in recipe]
+    keys = _stages(recipe)
     start, offset, report = None, 0, {}  # the file the next stage starts from; epochs before it (the bar)
     for i, key in enumerate(keys):  # a stage finished by an earlier, interrupted build is not redone
         done = final if i == len(keys) - 1 else out_dir / f"{final.stem}.stage{i + 1}.pt"

@@ -85,6 +85,7 @@ class ODMOTrainer(Trainer):
     kind = "odmo"
     config_class = ODMOConfig
     model_class = ODMO
+    init: dict | None = None  # where the weights started (start_from), kept in every checkpoint
 
     def build_optimizers(self) -> dict:
         return {"optimizer": torch.optim.Adam(self.model.parameters(), lr=self.tc.lr)}
@@ -133,16 +134,12 @@ class ODMOTrainer(Trainer):
         sums = self.group.sum(sums)
         return {"clips": 2 * n_pairs, "teacher": teacher_rate, **{k: v / n_pairs for k, v in sums.items()}}
 
-    init: dict | None = None  # where the weights started (start_from), kept in every checkpoint
-
     def start_from(self, ckpt: dict, source: str) -> None:
         """Start from another finished ODMO checkpoint's weights (a fine-tuning stage: this run's
         schedule, a fresh optimizer). Its model config must be this run's but for the loss terms."""
-        if ckpt.get("kind") != "odmo":
-            raise UserError(f"--init {source} holds a {ckpt.get('kind')!r} model, not odmo")
         if ckpt["dataset"] != dataset_description(self.clips):
             raise UserError(f"--init {source} was trained on {ckpt['dataset']['name']}, not {self.clips.manifest.name}")
-        self.model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in float_state(ckpt).items()})
+        self.model.load_state_dict(float_state(ckpt))  # float16 values are copied into the float32 parameters
         self.init = {"source": source, "epoch": int(ckpt["epoch"]), "train_config": ckpt["train_config"],
                      **({"init": ckpt["init"]} if ckpt.get("init") else {})}  # the stages before it, if any
 
