@@ -124,3 +124,29 @@ def test_build_continues_at_the_stage_it_stopped_in(lines_folder, lines_model, t
     assert sorted(p.name for p in tmp_path.iterdir()) == ["odmo_lines.pt"]
     assert load_checkpoint(tmp_path / "odmo_lines.pt")["init"]["epoch"] == 150  # lines_model's length
     assert ship.total_epochs(str(lines_folder)) == 4
+
+
+def test_build_chains_a_third_stage(lines_folder, tmp_path, monkeypatch):
+    """Each later stage starts from the previous stage's compact file; the shipped file's init names
+    the chain and the stage files are removed at the end."""
+    one = {"epochs": 1, "batch_size": 40, "pairs_per_epoch": 80, "val_every": 0, "threads": 1,
+           "tf_start": 0.0, "tf_end": 0.0}
+    tiny = {"odmo": {**one, "epochs": 2, "tf_start": 1.0, "tf_end": 0.3}, "odmo_stage2": one,
+            "odmo_stage3": {**one, "lr": 1e-4, "lr_final": 1e-5}}
+    monkeypatch.setitem(ship.RECIPES, str(lines_folder), tiny)
+    monkeypatch.setitem(checkpoint.SHIPPED, str(lines_folder),
+                        {"short": "lines", "odmo": "odmo_lines.pt", "classifier": "classifier_lines.pt"})
+    ship.build(str(lines_folder), None, tmp_path, skip_classifier=True, say=lambda m: None)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["odmo_lines.pt"]
+    ckpt = load_checkpoint(tmp_path / "odmo_lines.pt")
+    assert ckpt["train_config"]["lr_final"] == 1e-5 and ckpt["epoch"] == 1
+    assert ckpt["init"]["source"] == "odmo_lines.stage2.pt" and ckpt["init"]["train_config"]["lr_final"] == 1e-3
+    assert ckpt["init"]["init"]["source"] == "odmo_lines.stage1.pt" and ckpt["init"]["init"]["epoch"] == 2
+    assert ship.total_epochs(str(lines_folder)) == 4
+
+
+def test_stages_must_be_numbered_in_order():
+    assert ship._stages({"odmo_stage3": {}, "odmo": {}, "odmo_stage2": {}, "classifier": {}}) == \
+        ["odmo", "odmo_stage2", "odmo_stage3"]
+    with pytest.raises(ValueError, match="odmo_stage2, odmo_stage3"):
+        ship._stages({"odmo": {}, "odmo_stage3": {}})
