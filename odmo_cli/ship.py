@@ -104,12 +104,15 @@ def compact_classifier(ckpt: dict) -> dict:
     return {k: v for k, v in ckpt.items() if k not in ("optimizer", "rng")}
 
 
+_LATER_STAGE = re.compile(r"odmo_stage(\d+)")
+
+
 def _stages(recipe: dict) -> list[str]:
     """The recipe's ODMO stages in training order: "odmo", then "odmo_stage2", "odmo_stage3", ..."""
-    later = sorted((k for k in recipe if re.fullmatch(r"odmo_stage\d+", k)), key=lambda k: int(k[10:]))
-    if [int(k[10:]) for k in later] != list(range(2, len(later) + 2)):
-        raise ValueError(f"recipe stages must be odmo_stage2, odmo_stage3, ... in order, got {later}")
-    return ["odmo", *later] if "odmo" in recipe else []
+    numbers = sorted(int(m[1]) for k in recipe if (m := _LATER_STAGE.fullmatch(k)))
+    if numbers != list(range(2, len(numbers) + 2)):
+        raise ValueError(f"recipe stages must be odmo_stage2, odmo_stage3, ... in order, got stages {numbers}")
+    return ["odmo", *(f"odmo_stage{n}" for n in numbers)] if "odmo" in recipe else []
 
 
 def total_epochs(name: str) -> int:
