@@ -139,7 +139,10 @@ class ODMOTrainer(Trainer):
         schedule, a fresh optimizer). Its model config must be this run's but for the loss terms."""
         if ckpt["dataset"] != dataset_description(self.clips):
             raise UserError(f"--init {source} was trained on {ckpt['dataset']['name']}, not {self.clips.manifest.name}")
-        self.model.load_state_dict(float_state(ckpt))  # float16 values are copied into the float32 parameters
+        try:  # float16 values are copied into the float32 parameters
+            self.model.load_state_dict(float_state(ckpt))
+        except RuntimeError as e:  # a size or a key that differs (an override of the architecture)
+            raise UserError(f"--init {source}'s weights do not fit this model: {str(e).splitlines()[-1].strip()}") from None
         self.init = {"source": source, "epoch": int(ckpt["epoch"]), "train_config": ckpt["train_config"],
                      **({"init": ckpt["init"]} if ckpt.get("init") else {})}  # the stages before it, if any
 
