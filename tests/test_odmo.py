@@ -228,6 +228,34 @@ def test_shared_trajectory_gives_the_gradients_of_two_separate_decodes():
     assert any(a.abs().sum() > 0 for a in shared)
 
 
+def test_no_forced_step_reuses_the_first_decode_as_the_free_one():
+    """Without a teacher-forced step (the later stages' rate 0) the first decode is already the
+    sampling decode: it is not run twice, and the loss and gradients are those of running it twice."""
+    torch.manual_seed(0)
+    cfg = tiny_config(root="decoder")
+    model = ODMO(cfg).train()
+    motion = torch.randn(4, cfg.length, cfg.n_joints, 3).cumsum(1)
+    labels = torch.tensor([0, 1, 2, 0])
+    eps = torch.randn(4, cfg.latent_dim)
+    for teacher in (None, torch.zeros(cfg.length, dtype=torch.bool), torch.zeros(4, cfg.length, dtype=torch.bool)):
+        out = model(motion, labels, eps=eps, teacher=teacher, free=True)
+        assert out["free_motion"] is out["motion"]
+    assert model(motion, labels, eps=eps, teacher=torch.ones(cfg.length, dtype=torch.bool),
+                 free=True)["free_motion"] is not None  # forced steps: a second decode (tested above)
+
+    def grads(out):
+        model.zero_grad()
+        (out["motion"].square().mean() + 2 * out["free_motion"].square().mean()).backward()
+        return [p.grad.clone() for p in model.parameters()]
+
+    reused = grads(model(motion, labels, eps=eps, teacher=None, free=True))
+    out = model(motion, labels, eps=eps)
+    out["free_motion"] = model.decode(out["z"], labels, motion[:, -1, 0])[1]
+    twice = grads(out)
+    assert all(torch.allclose(a, b, rtol=1e-4, atol=1e-7) for a, b in zip(reused, twice))
+    assert any(a.abs().sum() > 0 for a in reused)
+
+
 def test_condition_is_the_flattened_outer_product():
     onehot = torch.tensor([[0.0, 1.0, 0.0]])
     z = torch.tensor([[1.0, 2.0]])
