@@ -123,6 +123,28 @@ def test_shipped_odmo_loads_safely_and_describes_its_data(short, dataset):
     assert np.isfinite(batch.motions).all()
 
 
+@pytest.mark.parametrize("short, dataset", SHIPPED_ODMO)
+def test_shipped_odmo_was_trained_by_its_recipe(short, dataset):
+    """The file's chain of stages (each stage's train config, newest first, in `init`) is the
+    recipe's, stage by stage, and the last stage's model values are the recipe's."""
+    from odmo_cli.checkpoint import shipped_file
+    from odmo_cli.ship import RECIPES, _stages
+
+    ckpt = torch.load(shipped_file(short), weights_only=True)
+    chain, node = [ckpt["train_config"]], ckpt.get("init")
+    while node:
+        chain.append(node["train_config"])
+        node = node.get("init")
+    recipe = RECIPES[dataset]
+    stages = _stages(recipe)
+    assert len(chain) == len(stages)
+    for tc, stage in zip(reversed(chain), stages):
+        wanted = {k: v for k, v in recipe[stage].items() if k not in ("model", "threads")}
+        assert {k: tc[k] for k in wanted} == wanted, stage
+    for k, v in recipe[stages[-1]].get("model", {}).items():
+        assert ckpt["config"][k] == v
+
+
 @pytest.mark.parametrize("model, action, shape", [
     ([], "jump", (60, 24, 3)),                      # the default model: the README's first command
     (["--model", "cmu"], "dance", (100, 20, 3)),
@@ -194,9 +216,9 @@ def test_unmet_bars_names_each_miss():
 @pytest.mark.slow
 @pytest.mark.parametrize("short, dataset", [
     pytest.param("humanact12", "humanact12", marks=pytest.mark.xfail(strict=True, reason=(
-        "the new defaults and four stages without teacher forcing (2026-12-02), the root on the trajectory: "
-        "speed 0.91, amplitude 0.89 and dist_e 0.0070 meet their bars; Acc 85.40, FID 0.491, Multimodality "
-        "2.02 (real 1.57) do not; drink 58, lift dumbbell 65, jump 72, warm up 75, eat 77, boxing 84"))),
+        "the new defaults and eleven stages without teacher forcing (2026-12-03), the root on the trajectory: "
+        "FID 0.181, Diversity, Multimodality 1.76 (real 1.57), speed 0.92, amplitude 0.91 and dist_e 0.0067 "
+        "meet their bars; Acc 89.57 does not; lift dumbbell 76, eat 80, warm up 80, drink 82"))),
     pytest.param("cmu", "cmu_mocap", marks=pytest.mark.xfail(strict=True, reason=(
         "trained with the new defaults (2026-12-02), the root on the trajectory: speed 0.83, amplitude 0.89, "
         "Diversity, Multimodality and dist_e 0.064 meet their bars; Acc 81.28, FID 0.601 do not; jump 67, "
