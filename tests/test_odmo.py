@@ -4,6 +4,7 @@ the non-finite stop are tested for every trainer in test_training_loop.py."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -484,3 +485,31 @@ def test_presets_per_dataset():
                                                    "free_energy_weight": 2.0}
     with pytest.raises(ValueError, match="unknown preset 'best'; valid: paper, release, odmo"):
         preset_values("best", "humanact12")
+
+
+def test_a_stage_keeps_the_split_of_the_file_it_starts_from(demo_clips, tmp_path):
+    """A stage run with another --seed draws its own pairs and noise but validates on the earlier
+    stages' held-out clips and never trains on them; resuming it keeps that split too."""
+    from odmo_cli.data.dataset import split_indices
+
+    small = {"latent_dim": 4, "encoder_fc": 16, "traj_hidden": 16, "motion_hidden": 16}
+    first = tmp_path / "first.pt"
+    train_odmo(demo_clips, TrainConfig(epochs=1, batch_size=8, val_every=0, threads=1, seed=0, val_fraction=0.34),
+               first, small)  # one clip of each action held out
+    held = torch.load(first, weights_only=True)["split"]["val"]
+    other = torch.from_numpy(split_indices(demo_clips, 0.34, 3)[1])
+    assert len(held) == 12 and not torch.equal(held, other)  # seed 3 alone would hold out other clips
+    second = tmp_path / "second.pt"
+    tc = TrainConfig(epochs=2, batch_size=8, val_every=0, checkpoint_every=1, threads=1, seed=3)
+    train_odmo(demo_clips, replace(tc, epochs=1), second, init=first)
+    ckpt = torch.load(second, weights_only=True)
+    assert torch.equal(ckpt["split"]["val"], held)
+    assert ckpt["train_config"]["seed"] == 3 and ckpt["train_config"]["split_seed"] == 0
+    assert ckpt["train_config"]["val_fraction"] == 0.34  # the first file's, not this run's default
+    train_odmo(demo_clips, tc, second, resume=second)  # one more epoch, resumed
+    assert torch.equal(torch.load(second, weights_only=True)["split"]["val"], held)
+    # a run of its own draws its split from its seed
+    fresh = tmp_path / "fresh.pt"
+    train_odmo(demo_clips, TrainConfig(epochs=1, batch_size=8, val_every=0, threads=1, seed=3, val_fraction=0.34),
+               fresh, small)
+    assert torch.equal(torch.load(fresh, weights_only=True)["split"]["val"], other)

@@ -66,6 +66,9 @@ class LoopConfig(Config):
     lr: float = 1e-3
     lr_final: float = 0.0  # cosine decay from lr to lr_final over the epochs; 0 (or = lr): constant lr
     val_fraction: float = 0.1  # per-class held-out share (a `split` column in the data wins)
+    # seed of the train/validation split; -1: `seed`. A stage started from another model's weights
+    # keeps that model's split (training.odmo), so its validation clips stay unseen whatever its seed.
+    split_seed: int = -1
     val_every: int = 10  # epochs between validations; 0: never
     checkpoint_every: int = 25  # epochs between checkpoints (and one at the end); 0: only at the end
     seed: int = 0
@@ -74,8 +77,14 @@ class LoopConfig(Config):
     def __post_init__(self):
         if not 0 <= self.val_fraction < 1:
             raise UserError(f"validation fraction must be in [0, 1), got {self.val_fraction}")
+        if self.split_seed < -1:
+            raise UserError(f"split seed must be a seed or -1 (the run's seed), got {self.split_seed}")
         if min(self.val_every, self.checkpoint_every, self.threads) < 0:
             raise UserError("val_every, checkpoint_every and threads must not be negative")
+
+    def data_split_seed(self) -> int:
+        """The seed the train/validation split is drawn with."""
+        return self.seed if self.split_seed < 0 else self.split_seed
 
     def learning_rate(self, epoch: int) -> float:
         """The rate of 0-based `epoch`."""
@@ -138,7 +147,7 @@ class Trainer:
         self.model = self.build_model().to(self.device)
         self.optimizers = self.build_optimizers()
         self.net = self.group.wrap(self.model)
-        self.train_idx, self.val_idx = split_indices(clips, tc.val_fraction, tc.seed)
+        self.train_idx, self.val_idx = split_indices(clips, tc.val_fraction, tc.data_split_seed())
         if len(self.train_idx) < self.min_train_clips:
             raise UserError(f"need at least {self.min_train_clips} training clips, have {len(self.train_idx)}")
         self.epoch = 0

@@ -10,7 +10,7 @@ for the whole batch and computes its share of the pairs (training/distributed.py
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -237,12 +237,20 @@ def finish(trainer: ODMOTrainer) -> dict:
     return report
 
 
+def same_split(tc: TrainConfig, ckpt: dict) -> TrainConfig:
+    """tc with the train/validation split of the checkpoint `ckpt` (its val_fraction and split seed):
+    a stage drawn on another split would train on clips the earlier stages held out and validate on
+    clips they trained on."""
+    before = LoopConfig.from_dict(ckpt.get("train_config", {}))
+    return replace(tc, val_fraction=before.val_fraction, split_seed=before.data_split_seed())
+
+
 def train_odmo(clips: ClipSet, tc: TrainConfig, out: Path, overrides: dict | None = None,
                resume: Path | None = None, progress: Progress | None = None,
                preset: str = "odmo", device: str = "cpu", init: Path | None = None) -> TrainResult:
     """Train ODMO on clips (or resume a checkpoint), then write the final checkpoint with its bank.
-    `init`: start from that finished checkpoint's weights and model config (`overrides` on top; the
-    preset is not applied). `device`: --device's value; under torchrun (or `launch`) one of several processes."""
+    `init`: start from that finished checkpoint's weights, model config (`overrides` on top; the
+    preset is not applied) and train/validation split. `device`: --device's value; under torchrun (or `launch`) one of several processes."""
     if init is not None and resume is not None:
         raise UserError("give either --init (start a new stage from a model's weights) or --resume, not both")
     with thread_count(tc.threads), training_group(device) as group:
@@ -253,7 +261,7 @@ def train_odmo(clips: ClipSet, tc: TrainConfig, out: Path, overrides: dict | Non
             if ckpt.get("kind") != "odmo":
                 raise UserError(f"--init {init} holds a {ckpt.get('kind')!r} model, not odmo")
             cfg = ODMOConfig.from_dict({**ckpt.get("config", {}), **(overrides or {})})
-            trainer = ODMOTrainer(clips, cfg, tc, out, group)
+            trainer = ODMOTrainer(clips, cfg, same_split(tc, ckpt), out, group)
             trainer.start_from(ckpt, Path(init).name)
         else:
             trainer = ODMOTrainer(clips, model_config_for(clips, overrides, preset), tc, out, group)
