@@ -471,6 +471,28 @@ def _amplitude(body: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.sqrt((dev ** 2).sum(-1).mean(axis=1)).mean(axis=1)
 
 
+def body_error(pred_motions: ArrayLike, real_motions: ArrayLike) -> float:
+    """Mean joint distance between the bodies about their roots (joint 0), (N, T, J, 3) each: where
+    a motion is, and which way its path runs, do not count; its pose does."""
+    pm, rm = _as_motions(pred_motions, "pred_motions"), _as_motions(real_motions, "real_motions")
+    if pm.shape != rm.shape:
+        raise ValueError(f"pred_motions {pm.shape} and real_motions {rm.shape} differ in shape")
+    return float(_norm3((pm - pm[:, :, :1]) - (rm - rm[:, :, :1])).mean())
+
+
+def mean_pose_error(motions: ArrayLike, labels: ArrayLike) -> float:
+    """body_error of each motion's action-mean body (frame by frame, over these motions themselves):
+    what a decoder that ignores everything but the action would reach. A model's body_error at or
+    above it on clips it trained on means its pose decoder under-fits."""
+    m = _as_motions(motions)
+    y = _as_labels(labels, m.shape[0])
+    body = m - m[:, :, :1]
+    mean = np.empty_like(body)
+    for c in np.unique(y):
+        mean[y == c] = body[y == c].mean(axis=0)
+    return float(_norm3(mean - body).mean())
+
+
 def damping_ratios(gen_motions: ArrayLike, gen_labels: ArrayLike, real_motions: ArrayLike,
                    real_labels: ArrayLike, smooth: int = 3) -> dict:
     """Generated over real body speed and amplitude, per category and their mean over categories.

@@ -369,6 +369,28 @@ def test_per_motion_statistics_do_not_depend_on_the_block_size():
     assert metrics.body_speed_and_amplitude(m[:0])[0].shape == (0,)
 
 
+def test_body_error_counts_the_pose_not_the_place():
+    rng = np.random.default_rng(0)
+    real = rng.normal(size=(3, 5, 4, 3))
+    moved = real + rng.normal(size=(3, 5, 1, 3))  # every frame's whole body shifted: the same poses
+    assert metrics.body_error(moved, real) == pytest.approx(0.0, abs=1e-12)
+    bent = real.copy()
+    bent[:, :, 1:] += np.array([0.0, 0.3, 0.4])  # every non-root joint 0.5 off, about the root
+    assert metrics.body_error(bent, real) == pytest.approx(0.5 * 3 / 4)
+    with pytest.raises(ValueError, match="differ in shape"):
+        metrics.body_error(real[:2], real)
+
+
+def test_mean_pose_error_is_the_spread_about_each_actions_mean_body():
+    m = np.zeros((3, 1, 2, 3))  # root at 0, one joint
+    m[0, 0, 1] = [1, 0, 0]
+    m[1, 0, 1] = [-1, 0, 0]  # action 0: mean body puts the joint at 0, 1 from each
+    m[2, 0, 1] = [0, 2, 0]  # action 1, alone: its own mean
+    m += np.array([5.0, 0, 0])  # where the motions are does not count
+    assert metrics.mean_pose_error(m, [0, 0, 1]) == pytest.approx((0.5 + 0.5 + 0.0) / 3)
+    assert metrics.mean_pose_error(m, [0, 1, 2]) == 0.0
+
+
 def test_damping_ratios_see_slowed_and_shrunk_motion():
     real = _swing(2)
     labels = np.array([0, 1])

@@ -385,6 +385,8 @@ def test_checkpoint_is_safe_and_holds_the_latent_bank(demo_clips, tmp_path):
     motion, _ = crops_from_start(demo_clips, ckpt["split"]["train"].numpy()[:4], 60)
     assert torch.allclose(model.eval().encode(motion)[0], bank["codes"][:4], atol=1e-5)
     assert result.report["held_out_mpjpe"] > 0
+    assert 0 < result.report["held_out_body"] <= result.report["held_out_mpjpe"] + result.report["held_out_end_error"] + 1
+    assert result.report["held_out_body_mean_pose"] >= 0  # 0 where every held-out action has one clip
 
 
 def test_free_running_term_starts_once_teacher_forcing_has_decayed():

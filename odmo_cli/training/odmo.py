@@ -162,7 +162,9 @@ class ODMOTrainer(Trainer):
 def reconstruction_error(model: ODMO, clips: ClipSet, idx: np.ndarray, batch: int = 512) -> dict[str, float]:
     """Free-running reconstruction of clips[idx] from their mean codes and real end points (as at
     sampling time, no teacher forcing): mean per-joint position error and end-point error (dataset
-    units), and the body's speed and amplitude over the clips' own (metrics.damping_ratios)."""
+    units), the error of the body about its root beside that of the clips' own action-mean body
+    (metrics.body_error, metrics.mean_pose_error), and the body's speed and amplitude over the clips'
+    own (metrics.damping_ratios)."""
     model.eval()
     dev = model_device(model)
     joint_err, end_err, recons, reals, labs = [], [], [], [], []
@@ -176,9 +178,10 @@ def reconstruction_error(model: ODMO, clips: ClipSet, idx: np.ndarray, batch: in
         recons.append(recon.numpy())
         reals.append(motion.numpy())
         labs.append(labels.numpy())
-    labs = np.concatenate(labs)
-    damp = metrics.damping_ratios(np.concatenate(recons), labs, np.concatenate(reals), labs)
+    labs, recons, reals = np.concatenate(labs), np.concatenate(recons), np.concatenate(reals)
+    damp = metrics.damping_ratios(recons, labs, reals, labs)
     return {"mpjpe": float(torch.cat(joint_err).mean()), "end_error": float(torch.cat(end_err).mean()),
+            "body": metrics.body_error(recons, reals), "body_mean_pose": metrics.mean_pose_error(reals, labs),
             "speed": damp["speed"], "amplitude": damp["amplitude"]}
 
 
