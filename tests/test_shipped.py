@@ -216,9 +216,9 @@ def test_unmet_bars_names_each_miss():
 @pytest.mark.slow
 @pytest.mark.parametrize("short, dataset", [
     pytest.param("humanact12", "humanact12", marks=pytest.mark.xfail(strict=True, reason=(
-        "the new defaults and twelve stages without teacher forcing (2026-12-03), the root on the trajectory: "
-        "FID 0.180, Diversity, speed 0.93, amplitude 0.91 and dist_e 0.0062 meet their bars; Acc 88.40 and "
-        "Multimodality 1.97 (real 1.57) do not; lift dumbbell 73, warm up 75, jump 81, drink 82, eat 82"))),
+        "the new defaults and eighteen stages without teacher forcing (2026-12-03), the root on the trajectory: "
+        "FID 0.171, Diversity, Multimodality 1.73 (real 1.57), speed 0.95, amplitude 0.93 and dist_e 0.0042 "
+        "meet their bars; Acc 91.01 does not; lift dumbbell 73, warm up 77"))),
     pytest.param("cmu", "cmu_mocap", marks=pytest.mark.xfail(strict=True, reason=(
         "trained with the new defaults (2026-12-02), the root on the trajectory: speed 0.83, amplitude 0.89, "
         "Diversity, Multimodality and dist_e 0.064 meet their bars; Acc 81.28, FID 0.601 do not; jump 67, "
