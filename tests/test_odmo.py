@@ -298,6 +298,36 @@ def test_root_readout():
         tiny_config(root="warp")
 
 
+def test_pose_frame_path_draws_the_body_about_the_generated_path():
+    """pose_frame="path": the decoder's outputs (and teacher-forced inputs) are measured from the
+    trajectory's point at each frame; the same weights give the world-frame output plus the path,
+    and a teacher-forced step is fed the real previous pose less that point."""
+    torch.manual_seed(0)
+    world = ODMO(tiny_config(root="decoder")).eval()
+    path = ODMO(tiny_config(root="decoder", pose_frame="path")).eval()
+    path.load_state_dict(world.state_dict())
+    z, lab, end = torch.randn(3, 5), torch.tensor([0, 1, 2]), torch.randn(3, 3)
+    traj, a = world.decode(z, lab, end)
+    traj_p, b = path.decode(z, lab, end)
+    assert torch.equal(traj, traj_p)
+    assert not torch.allclose(a[:, 1:], b[:, 1:], atol=1e-3)  # the free-running inputs differ from frame 1 on
+    motion = torch.randn(3, 8, 4, 3).cumsum(1)
+    forced = torch.ones(8, dtype=torch.bool)
+    eps = torch.zeros(3, 5)
+    out_p = path(motion, lab, eps=eps, teacher=forced)
+    # every step teacher-forced: the decoder's own outputs are those of the world-frame decoder fed
+    # the real poses less the path, and the motion is those outputs placed on the path
+    shifted = world.motion(out_p["trajectory"], condition(torch.nn.functional.one_hot(lab, 3).float(), out_p["z"]),
+                           (motion - out_p["trajectory"][:, :, None]).flatten(2), forced)
+    assert torch.allclose(out_p["motion"], shifted.view(3, 8, 4, 3) + out_p["trajectory"][:, :, None], atol=1e-5)
+    with pytest.raises(ValueError, match="pose_frame must be one of world, path"):
+        tiny_config(pose_frame="root")
+    result = CliRunner().invoke(app, ["train", "--pose-frame", "hips", "--epochs", "1"])
+    assert result.exit_code == 2 and "--pose-frame must be one of world, path" in result.output
+    result = CliRunner().invoke(app, ["train", "--pose-frame", "path", "--init", "stage.pt", "--epochs", "1"])
+    assert result.exit_code == 2 and "keeps its file's" in result.output
+
+
 def test_minus_re_variant_ignores_the_end_point():
     torch.manual_seed(0)
     model = ODMO(tiny_config(use_end_point=False)).eval()
@@ -358,9 +388,10 @@ def small_tc(**kw) -> TrainConfig:
     return TrainConfig(**base)
 
 
-def test_tiny_training_decreases_the_loss(demo_clips, tmp_path):
+@pytest.mark.parametrize("frame", ["world", "path"])
+def test_tiny_training_decreases_the_loss(demo_clips, tmp_path, frame):
     torch.manual_seed(0)
-    cfg = model_config_for(demo_clips, {"motion_hidden": 32, "traj_hidden": 32})
+    cfg = model_config_for(demo_clips, {"motion_hidden": 32, "traj_hidden": 32, "pose_frame": frame})
     trainer = ODMOTrainer(demo_clips, cfg, small_tc(epochs=12, tf_start=1.0, tf_end=1.0), tmp_path / "m.pt")
     history = trainer.run()
     first, last = history[0]["total"], np.mean([h["total"] for h in history[-3:]])

@@ -16,6 +16,7 @@ from odmo_cli.config import Config
 
 
 ROOTS = ("trajectory", "decoder")  # ODMOConfig.root
+POSE_FRAMES = ("world", "path")  # ODMOConfig.pose_frame
 
 
 @dataclass
@@ -64,12 +65,19 @@ class ODMOConfig(Config):
     # decoder drew about its root, placed on the trajectory generator's path, which is what the end point
     # conditions (not in the paper nor the release; docs/generation.md gives the measurements).
     root: str = "trajectory"
+    # what the pose decoder's outputs (and its teacher-forced inputs) are measured from. "world": the
+    # dataset's frame, as in the paper and the release: the decoder draws the path itself, kept near
+    # the trajectory by L_cons. "path": each frame's point of the trajectory generator's path (not in
+    # the paper nor the release): the decoder draws the body about the path and L_cons keeps its root on it.
+    pose_frame: str = "world"
 
     def __post_init__(self):
         if self.traj_loss not in ("position", "velocity"):
             raise ValueError(f"traj_loss must be position or velocity, got {self.traj_loss!r}")
         if self.root not in ROOTS:
             raise ValueError(f"root must be one of {', '.join(ROOTS)}, got {self.root!r}")
+        if self.pose_frame not in POSE_FRAMES:
+            raise ValueError(f"pose_frame must be one of {', '.join(POSE_FRAMES)}, got {self.pose_frame!r}")
         if not (self.sigma2 > 0 and self.recon_weight > 0):
             raise ValueError(f"sigma2 and recon_weight must be positive, got {self.sigma2} and {self.recon_weight}")
         if min(self.vel_weight, self.energy_weight, self.free_energy_weight) < 0:
@@ -254,7 +262,7 @@ class ODMO(nn.Module):
         """Code (B, D), labels (B,), end point (B, 3) -> (trajectory (B, T, 3), motion (B, T, J, 3)),
         the motion's root as cfg.root says."""
         trajectory, prepared = self._plan(z, labels, end_point)
-        motion = self._poses(prepared, target, teacher)
+        motion = self._poses(prepared, trajectory, target, teacher)
         if self.cfg.root == "trajectory":
             motion = motion - motion[:, :, :1] + trajectory[:, :, None]  # the same body about its root, on T-hat
         return trajectory, motion
@@ -266,11 +274,18 @@ class ODMO(nn.Module):
         trajectory = torch.cumsum(self.trajectory(cond, end_point), dim=1)  # r_t = sum of v, r_0 = 0
         return trajectory, self.motion.prepare(trajectory, cond)
 
-    def _poses(self, prepared: tuple, target: torch.Tensor | None = None,
+    def _poses(self, prepared: tuple, trajectory: torch.Tensor, target: torch.Tensor | None = None,
                teacher: torch.Tensor | None = None) -> torch.Tensor:
+        """The pose decoder's motion (B, T, J, 3) in the dataset's frame; teacher-forced from target."""
+        origin = trajectory[:, :, None] if self.cfg.pose_frame == "path" else None  # (B, T, 1, 3)
+        if target is not None and origin is not None:
+            # the previous pose as the decoder would have drawn it; the path is not detached, here or
+            # in the output, so the pose losses reach the trajectory generator through both
+            target = target - origin
         flat_target = target.flatten(2) if target is not None else None
         motion = self.motion.unroll(prepared, flat_target, teacher)
-        return motion.view(*motion.shape[:2], self.cfg.n_joints, 3)
+        motion = motion.view(*motion.shape[:2], self.cfg.n_joints, 3)
+        return motion if origin is None else motion + origin
 
     def forward(self, motion: torch.Tensor, labels: torch.Tensor, generator: torch.Generator | None = None,
                 teacher: torch.Tensor | None = None, eps: torch.Tensor | None = None,
@@ -284,10 +299,10 @@ class ODMO(nn.Module):
         z = mu + eps * torch.exp(0.5 * logvar)
         trajectory, prepared = self._plan(z, labels, motion[:, -1, 0])
         out = {"mu": mu, "logvar": logvar, "z": z, "trajectory": trajectory,
-               "motion": self._poses(prepared, motion, teacher)}
+               "motion": self._poses(prepared, trajectory, motion, teacher)}
         if free:  # the same trajectory, decoded again without teacher forcing
             forced = teacher is not None and bool(teacher.any())
             # with no step forced the first decode is already the free-running one: the same
             # values and gradients, at half the cost of decoding it twice
-            out["free_motion"] = self._poses(prepared) if forced else out["motion"]
+            out["free_motion"] = self._poses(prepared, trajectory) if forced else out["motion"]
         return out
