@@ -472,6 +472,9 @@ def test_init_starts_a_stage_from_a_finished_model(demo_clips, tmp_path):
         train_odmo(demo_clips, tc, tmp_path / "x.pt", init=first, resume=second)
     with pytest.raises(UserError, match=r"^--init first.pt's weights do not fit this model: size mismatch"):
         train_odmo(demo_clips, tc, tmp_path / "x.pt", {"motion_hidden": 8}, init=first)
+    with pytest.raises(UserError, match=r"^--init first.pt draws poses in the world frame; .* not path$"):
+        train_odmo(demo_clips, tc, tmp_path / "x.pt", {"pose_frame": "path"}, init=first)  # as a ship stage could
+    assert not (tmp_path / "x.pt").exists()
     res = CliRunner().invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--init", str(first),
                                    "--resume", str(second), "--out", str(tmp_path / "y.pt")])
     assert res.exit_code == 2 and "either --init" in res.stderr and "Traceback" not in res.stderr

@@ -263,7 +263,11 @@ def train_odmo(clips: ClipSet, tc: TrainConfig, out: Path, overrides: dict | Non
             ckpt = load_checkpoint(init)
             if ckpt.get("kind") != "odmo":
                 raise UserError(f"--init {init} holds a {ckpt.get('kind')!r} model, not odmo")
+            kept = ODMOConfig.from_dict(ckpt.get("config", {}))
             cfg = ODMOConfig.from_dict({**ckpt.get("config", {}), **(overrides or {})})
+            if cfg.pose_frame != kept.pose_frame:  # same shapes, other meaning: would load silently
+                raise UserError(f"--init {Path(init).name} draws poses in the {kept.pose_frame} frame; "
+                                f"a stage from it keeps that frame, not {cfg.pose_frame}")
             trainer = ODMOTrainer(clips, cfg, same_split(tc, ckpt), out, group)
             trainer.start_from(ckpt, Path(init).name)
         else:
