@@ -460,6 +460,24 @@ def body_speed_and_amplitude(motions: ArrayLike, smooth: int = 3) -> tuple[NDArr
     return np.concatenate(speed), np.concatenate(amplitude)
 
 
+def root_height_speed_and_amplitude(motions: ArrayLike, up_axis: int, smooth: int = 3
+                                    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Per motion (N,), (N,): mean absolute frame-to-frame change, and standard deviation about its
+    least-squares line over time (a steady climb or sink is no amplitude), of the root's height
+    (coordinate `up_axis`), after a centred `smooth`-frame moving average. What the body about the
+    root cannot show: a jump's rise and fall."""
+    h = _as_motions(motions)[:, :, 0, up_axis]  # (N, T)
+    if smooth > 1 and h.shape[1] >= smooth:
+        T = h.shape[1] - smooth + 1
+        h = sum(h[:, k:k + T] for k in range(smooth)) / smooth
+    if h.shape[1] < 2:
+        raise ValueError("root height speed needs at least 2 frames after smoothing")
+    t = np.arange(h.shape[1]) - (h.shape[1] - 1) / 2
+    hc = h - h.mean(1, keepdims=True)
+    resid = hc - (hc @ t / (t @ t))[:, None] * t
+    return np.abs(np.diff(h, axis=1)).mean(1), np.sqrt((resid ** 2).mean(1))
+
+
 def _speed(body: NDArray[np.float64]) -> NDArray[np.float64]:
     if body.shape[1] < 2:
         raise ValueError("body_speed needs at least 2 frames after smoothing")

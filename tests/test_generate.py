@@ -13,6 +13,7 @@ from odmo_cli.cli import app
 from odmo_cli.checkpoint import load_model, load_odmo
 from odmo_cli.errors import UserError
 from odmo_cli.generation.generate import interpolate, parse_point, sample
+from odmo_cli.geometry.skeletons import get_skeleton
 from odmo_cli.latent import ActionModes, choose_k, discover_modes, knn_end_points, sample_codes
 
 # -- mode discovery --------------------------------------------------------------------------
@@ -100,6 +101,14 @@ def test_root_readout_is_chosen_at_load(lines_model, tmp_path):
     b = sample(own, ["glide"], 5, seed=0, end="0.6,-0.4").motions
     assert not np.allclose(a[:, :, 0], b[:, :, 0], atol=1e-4)
     assert np.allclose(a - a[:, :, :1], b - b[:, :, :1], atol=1e-5)
+    # ground: the path on the ground plane, the decoder's own height
+    ground = load_odmo(lines_model, root="ground")
+    c = sample(ground, ["glide"], 5, seed=0, end="0.6,-0.4").motions
+    up = get_skeleton(ground.dataset["skeleton"]).up_index
+    flat = [i for i in range(3) if i != up]
+    assert np.allclose(c[:, :, 0][..., flat], a[:, :, 0][..., flat], atol=1e-5)
+    assert np.allclose(c[:, :, 0, up], b[:, :, 0, up], atol=1e-5)
+    assert np.allclose(c - c[:, :, :1], a - a[:, :, :1], atol=1e-5)
     res = CliRunner().invoke(app, ["sample", "--model", str(lines_model), "--action", "glide", "--n", "5",
                                    "--end", "0.6,-0.4", "--root", "decoder", "--out", str(tmp_path / "d.npz")])
     assert res.exit_code == 0, res.output

@@ -504,6 +504,21 @@ def test_cli_train_and_info(tmp_path):
     assert config["free_energy_weight"] == 0.5 and saved["train_config"]["free_from"] == 3
     res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--free-energy-weight", "-1"])
     assert res.exit_code == 2 and res.stderr == "error: --free-energy-weight must not be negative, got -1.0\n"
+    res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--height-weight", "-1"])
+    assert res.exit_code == 2 and res.stderr == "error: --height-weight must not be negative, got -1.0\n"
+    res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--root", "hips"])
+    assert res.exit_code == 2 and res.stderr == "error: unknown --root 'hips'; valid: trajectory, decoder, ground\n"
+    # a stage with the height term, read with the ground readout: both stored, the validation reports the height
+    staged = tmp_path / "h.pt"
+    res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--init", str(out), "--epochs", "1",
+                              "--batch-size", "8", "--height-weight", "2", "--root", "ground", "--val-every", "1",
+                              "--out", str(staged), "--json"])
+    assert res.exit_code == 0, res.output
+    saved = torch.load(staged, weights_only=True)
+    assert saved["config"]["height_weight"] == 2.0 and saved["config"]["root"] == "ground"
+    assert saved["config"]["energy_weight"] == 1.5  # the rest of the file's config stands
+    logged = saved["history"][-1]
+    assert logged["height"] > 0 and np.isfinite(logged["val_height"]) and logged["val_height"] > 0
     res = runner.invoke(app, ["info", "--model", str(out), "--json"])
     assert res.exit_code == 0 and '"kind": "odmo"' in res.stdout and '"weights": "float32"' in res.stdout
 
@@ -549,3 +564,87 @@ def test_a_stage_keeps_the_split_of_the_file_it_starts_from(demo_clips, tmp_path
     train_odmo(demo_clips, TrainConfig(epochs=1, batch_size=8, val_every=0, threads=1, seed=3, val_fraction=0.34),
                fresh, small)
     assert torch.equal(torch.load(fresh, weights_only=True)["split"]["val"], other)
+
+
+def hopping(T: int = 60, height: float = 0.2, phase: float = 0.0) -> torch.Tensor:
+    """A rigid 3-joint body whose root bobs vertically (y) while it walks along x: (1, T, 3, 3)."""
+    t = torch.arange(T, dtype=torch.float64) * 2 * math.pi / 20 + phase
+    m = torch.zeros(1, T, 3, 3, dtype=torch.float64)
+    m[0, :, :, 0] = 0.05 * torch.arange(T)[:, None] + torch.arange(3)
+    m[0, :, :, 1] = height * torch.sin(t)[:, None]
+    return m
+
+
+def test_root_height_stats_match_the_metrics():
+    from odmo_cli import metrics
+
+    motion = torch.randn(5, 40, 4, 3, dtype=torch.float64).cumsum(1) * 0.01
+    speed, amplitude = losses.root_height_stats(motion, up_axis=1)
+    m_speed, m_amp = metrics.root_height_speed_and_amplitude(motion.numpy(), up_axis=1)
+    assert np.allclose(speed.numpy(), m_speed, atol=1e-9) and np.allclose(amplitude.numpy(), m_amp, atol=1e-6)
+    # a root that keeps its height has neither, whatever it does on the ground plane
+    flat = hopping(height=0.0)
+    assert metrics.root_height_speed_and_amplitude(flat.numpy(), 1)[1][0] == pytest.approx(0.0, abs=1e-12)
+    # nor does a steady sink: amplitude is the spread about the height's line over time
+    sinking = flat.clone()
+    sinking[..., 1] -= 0.01 * torch.arange(flat.shape[1], dtype=torch.float64)[:, None]
+    speed, amplitude = metrics.root_height_speed_and_amplitude(sinking.numpy(), 1)
+    assert amplitude[0] == pytest.approx(0.0, abs=1e-9) and speed[0] == pytest.approx(0.01)
+    assert losses.root_height_stats(sinking, 1)[1].item() == pytest.approx(0.0, abs=1e-5)  # sqrt(x + 1e-12)
+
+
+def test_height_error_known_values():
+    target = hopping()
+    assert losses.height_error(target, target, 1).item() == pytest.approx(0.0, abs=1e-9)
+    # phase-blind: the same hops half a period later ask for no change
+    assert losses.height_error(hopping(phase=math.pi), target, 1).item() == pytest.approx(0.0, abs=1e-6)
+    # hops of half the height, floors 0 -> speed and amplitude both log(1/2)^2; twice the height: the same
+    half = losses.height_error(hopping(height=0.1), target, 1, speed_floor=0.0, amplitude_floor=0.0).item()
+    assert half == pytest.approx(2 * math.log(2) ** 2, rel=1e-6)
+    assert losses.height_error(hopping(height=0.4), target, 1, 0.0, 0.0).item() == pytest.approx(half, rel=1e-6)
+    # the floors keep a root that hardly moves from weighing like a jump: a 1 mm bob against 2 mm
+    small = losses.height_error(hopping(height=0.001), hopping(height=0.002), 1).item()
+    assert small < 0.02 < 0.2 < losses.height_error(hopping(height=0.1), target, 1).item()
+    # the body about its root is the same in all three: the energy term cannot tell them apart
+    assert losses.energy_error(hopping(height=0.0), target).item() == pytest.approx(0.0, abs=1e-9)
+    flat = hopping(height=0.0).requires_grad_(True)
+    err = losses.height_error(flat, target, 1)
+    (st, at), (s0, a0) = losses.root_height_stats(target, 1), losses.root_height_stats(flat.detach(), 1)
+    expect = math.log((s0.item() + 0.002) / (st.item() + 0.002)) ** 2 + math.log((a0.item() + 0.01) / (at.item() + 0.01)) ** 2
+    assert err.item() == pytest.approx(expect, rel=1e-6) and err.item() > 3.0
+    err.sum().backward()
+    assert torch.isfinite(flat.grad).all()
+    assert torch.isfinite(losses.height_error(target, hopping(height=0.0), 1)).all()  # floored, not divided by 0
+
+
+def test_height_weight_enters_the_total_on_the_free_decode():
+    cfg = tiny_config(height_weight=2.0)
+    target = hopping(T=cfg.length).float().expand(2, -1, -1, -1)
+    target = torch.cat([target, torch.zeros(2, cfg.length, cfg.n_joints - 3, 3)], dim=2)  # (2, T, J, 3)
+    out = {"trajectory": target[:, :, 0], "motion": target, "free_motion": target.clone(),
+           "mu": torch.zeros(2, 5), "logvar": torch.full((2, 5), math.log(cfg.sigma2))}
+    out["free_motion"][..., 1] = 0.0  # the free-running decode does not leave the ground
+    terms = losses.odmo_terms(out, target, torch.tensor([0, 0]), cfg)
+    assert terms["height"].item() == pytest.approx(losses.height_error(out["free_motion"], target, 1).mean().item())
+    assert terms["height"].item() > 1.0  # the free decode's, not the first's (which is perfect)
+    base = {k: torch.tensor(1.0) for k in ("mre", "es", "vae", "r", "cons")}
+    assert losses.total_loss({**base, "height": torch.tensor(0.5)}, cfg).item() == 5.0
+    assert losses.total_loss({**base, "height": torch.tensor(0.5)}, tiny_config()).item() == 4.0
+    with pytest.raises(ValueError, match="height_weight must be non-negative"):
+        tiny_config(height_weight=-1.0)
+
+
+def test_ground_root_keeps_the_path_and_the_decoders_height():
+    torch.manual_seed(0)
+    cfg = tiny_config(root="decoder")
+    model = ODMO(cfg).eval()
+    z, labels, end = torch.randn(3, cfg.latent_dim), torch.tensor([0, 1, 2]), torch.randn(3, 3)
+    with torch.no_grad():
+        traj, own = model.decode(z, labels, end)
+        model.cfg = replace(cfg, root="ground")
+        _, ground = model.decode(z, labels, end)
+    up = cfg.up_axis
+    flat = [a for a in range(3) if a != up]
+    assert torch.allclose(ground[:, :, 0][..., flat], traj[..., flat])  # on the trajectory's path
+    assert torch.allclose(ground[:, :, 0, up], own[:, :, 0, up])  # at the decoder's height
+    assert torch.allclose(ground - ground[:, :, :1], own - own[:, :, :1], atol=1e-6)  # the same body

@@ -122,7 +122,8 @@ ModelOpt = Annotated[Optional[str], typer.Option(
 OutOpt = Annotated[Path, typer.Option("--out", help="Samples file to write (.npz).")]
 RootOpt = Annotated[Optional[str], typer.Option(
     "--root", help="ODMO: where a motion's root comes from: trajectory (the path the end point conditions; "
-                   "the default) or decoder (the pose decoder's own root joint, as in the paper); docs/generation.md.")]
+                   "the default), decoder (the pose decoder's own root joint, as in the paper) or ground (the path on the "
+                   "ground plane, the decoder's own height); docs/generation.md.")]
 EndOpt = Annotated[Optional[str], typer.Option("--end", help="End point: x,z (ground plane) or x,y,z.")]
 DeviceOpt = Annotated[str, typer.Option("--device", help="Where to compute: auto (the best present: CUDA, else MPS, "
                                                          "else CPU), cpu (the default), cuda, cuda:N or mps.")]

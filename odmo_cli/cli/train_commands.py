@@ -13,7 +13,7 @@ from typing import Annotated, Optional
 import typer
 
 from odmo_cli.cli.common import (Command, DataOpt, DeviceOpt, JsonOpt, SeedOpt, app, console, device_for, err_console,
-                                 print_json, resolve_spec, train_app)
+                                 RootOpt, print_json, resolve_spec, train_app)
 from odmo_cli.errors import UserError
 
 ABLATIONS = ("es", "traj", "cons", "end-point")
@@ -106,14 +106,16 @@ def train_odmo_cmd(
     vel_weight: Annotated[Optional[float], typer.Option("--vel-weight", help="Weight of the joint-velocity error L_vel (0: off, as in the paper and the release).")] = None,
     energy_weight: Annotated[Optional[float], typer.Option("--energy-weight", help="Weight of L_energy, each joint's speed and amplitude about the root against the clip's (preset odmo: 2; 0: off, as in the paper and the release).")] = None,
     free_energy_weight: Annotated[Optional[float], typer.Option("--free-energy-weight", help="Weight of L_energy on a second, free-running decode of the same codes, as sampling runs it (preset odmo: 2; 0: off).")] = None,
+    height_weight: Annotated[Optional[float], typer.Option("--height-weight", help="Weight of L_height, the root height's speed and amplitude against the clip's, on the free-running decode (0: off, the default, as in the paper and the release); pair it with --root ground.")] = None,
     free_from: Annotated[Optional[int], typer.Option("--free-from", help="First epoch (0-based) of the free-running L_energy (default: once teacher forcing has decayed; half the epochs when it decays over all).")] = None,
+    root: RootOpt = None,
     pose_frame: Annotated[Optional[str], typer.Option("--pose-frame", help="What the pose decoder draws from: world (the dataset's frame, the paper's) or path (each frame's point of the generated trajectory).")] = None,
     checkpoint_every: CheckpointOpt = None, val_every: ValOpt = None,
     out: OutOpt = None, resume: ResumeOpt = None, threads: ThreadsOpt = 0,
     device: DeviceOpt = "cpu", nproc: NprocOpt = 1, seed: SeedOpt = 0, as_json: JsonOpt = False,
 ):
     """Train ODMO (the default of `odmo train`); at the end the checkpoint gets its latent bank and modes."""
-    from odmo_cli.models.odmo import POSE_FRAMES, PRESETS
+    from odmo_cli.models.odmo import POSE_FRAMES, PRESETS, ROOTS
     from odmo_cli.training.odmo import TrainConfig, train_odmo
 
     out = _out(out, "odmo")
@@ -128,6 +130,8 @@ def train_odmo_cmd(
         raise UserError(f"--tf-per must be step or clip, got {tf_per!r}")
     if pose_frame is not None and pose_frame not in POSE_FRAMES:
         raise UserError(f"--pose-frame must be one of {', '.join(POSE_FRAMES)}, got {pose_frame!r}")
+    if root is not None and root not in ROOTS:
+        raise UserError(f"unknown --root {root!r}; valid: {', '.join(ROOTS)}")
     if pose_frame is not None and init is not None:
         raise UserError("--pose-frame changes what the weights mean; a stage from --init keeps its file's")
     scales = {"sigma2": sigma2, "recon_weight": recon_weight}  # ODMOConfig fields, given as --sigma2, --recon-weight
@@ -135,13 +139,14 @@ def train_odmo_cmd(
         if value is not None and not value > 0:
             raise UserError(f"--{key.replace('_', '-')} must be a positive number, got {value}")
     for flag, value in (("--vel-weight", vel_weight), ("--energy-weight", energy_weight),
-                        ("--free-energy-weight", free_energy_weight)):
+                        ("--free-energy-weight", free_energy_weight), ("--height-weight", height_weight)):
         if value is not None and value < 0:
             raise UserError(f"{flag} must not be negative, got {value}")
-    scales.update(vel_weight=vel_weight, energy_weight=energy_weight, free_energy_weight=free_energy_weight)
+    scales.update(vel_weight=vel_weight, energy_weight=energy_weight, free_energy_weight=free_energy_weight,
+                  height_weight=height_weight)
     overrides = {"use_es": "es" not in (ablate or []), "use_traj": "traj" not in (ablate or []),
                  "use_cons": "cons" not in (ablate or []), "use_end_point": "end-point" not in (ablate or [])}
-    overrides.update(_given(**scales, pose_frame=pose_frame))
+    overrides.update(_given(**scales, pose_frame=pose_frame, root=root))
     if init is not None:  # the file's config stands but for what was asked: loss weights, ablations
         if resume is not None:
             raise UserError("give either --init (start a new stage from a model's weights) or --resume, not both")

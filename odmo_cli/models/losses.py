@@ -78,6 +78,37 @@ def energy_error(pred: torch.Tensor, target: torch.Tensor, floor: float = 0.005)
     return (((sp - st) / ns).pow(2) + ((ap - at) / na).pow(2)).mean(1)
 
 
+def root_height_stats(motion: torch.Tensor, up_axis: int, smooth: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per clip: speed (mean absolute frame-to-frame change) and amplitude (standard deviation about
+    its least-squares line over time) of the root's height, after a `smooth`-frame moving average:
+    (B, T, J, 3) -> (B,), (B,). A steady climb or sink is no amplitude: a decoder could otherwise
+    match a jump's spread by drifting (measured: it did). The twin of metrics.root_height_speed_and_amplitude."""
+    h = motion[:, :, 0, up_axis]  # (B, T)
+    if smooth > 1:
+        h = h.unfold(1, smooth, 1).mean(-1)  # (B, T - smooth + 1)
+    speed = h.diff(dim=1).abs().mean(1)
+    t = torch.arange(h.shape[1], dtype=h.dtype, device=h.device)
+    t = t - t.mean()
+    hc = h - h.mean(1, keepdim=True)
+    resid = hc - (hc @ t / t.pow(2).sum())[:, None] * t  # (B, T'), the line removed
+    amplitude = torch.sqrt(resid.pow(2).mean(1) + 1e-12)
+    return speed, amplitude
+
+
+def height_error(pred: torch.Tensor, target: torch.Tensor, up_axis: int, speed_floor: float = 0.002,
+                 amplitude_floor: float = 0.01) -> torch.Tensor:
+    """How far the root height's speed and amplitude are from the target clip's, phase-blind, as
+    squared log ratios: (B,). The floors (units per frame, units) are added to both sides.
+
+    The body about the root cannot show a jump; the root's rise and fall does, and squared position
+    errors flatten it wherever the takeoff's frame is uncertain. Log ratios, not energy_error's relative
+    errors: a root that hardly moves (a 5 mm bob) would otherwise weigh a hundred times a jump's
+    (measured: the relative form flattened every action's height on CMU MoCap, jumps included)."""
+    (sp, ap), (st, at) = root_height_stats(pred, up_axis), root_height_stats(target, up_axis)
+    return (torch.log((sp + speed_floor) / (st + speed_floor)).pow(2)
+            + torch.log((ap + amplitude_floor) / (at + amplitude_floor)).pow(2))
+
+
 def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> dict[str, torch.Tensor]:
     """All loss terms for a batch whose first half is paired index-wise with its second half.
 
@@ -94,6 +125,9 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
     l_vel = sequence_error(out["motion"].diff(dim=1), motion.diff(dim=1), w)
     l_energy = energy_error(out["motion"], motion) if cfg.energy_weight else motion.new_zeros(len(motion))
     l_free = energy_error(out["free_motion"], motion) if "free_motion" in out else motion.new_zeros(len(motion))
+    # on the decode that sampling runs: the free-running one when there is one
+    l_height = (height_error(out.get("free_motion", out["motion"]), motion, cfg.up_axis) if cfg.height_weight
+                else motion.new_zeros(len(motion)))
     half = len(motion) // 2
     mu, logvar = out["mu"], out["logvar"]
     same = labels[:half] == labels[half:]
@@ -107,6 +141,7 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
         "vel": l_vel.mean(),
         "energy": l_energy.mean(),
         "free_energy": l_free.mean(),
+        "height": l_height.mean(),
         "vae": standard_kl(mu, logvar).mean() * 2,
     }
 
@@ -121,6 +156,8 @@ def total_loss(terms: dict[str, torch.Tensor], cfg) -> torch.Tensor:
         recon = recon + cfg.energy_weight * terms["energy"]
     if cfg.free_energy_weight:
         recon = recon + cfg.free_energy_weight * terms["free_energy"]
+    if cfg.height_weight:
+        recon = recon + cfg.height_weight * terms["height"]
     if cfg.use_traj:
         recon = recon + terms["r"]
     if cfg.use_cons:

@@ -15,7 +15,7 @@ import torch.nn.functional as F
 from odmo_cli.config import Config
 
 
-ROOTS = ("trajectory", "decoder")  # ODMOConfig.root
+ROOTS = ("trajectory", "decoder", "ground")  # ODMOConfig.root
 POSE_FRAMES = ("world", "path")  # ODMOConfig.pose_frame
 
 
@@ -59,11 +59,17 @@ class ODMOConfig(Config):
     # data; the free-running decoder is what drifts to a slow average. Trained from
     # TrainConfig.free_from on (by default once teacher forcing has decayed).
     free_energy_weight: float = 0.0
+    # weight of L_height, the relative error of the root height's speed and amplitude (losses.
+    # height_error; not in the paper nor the release), on the free-running decode when there is one.
+    # Squared position errors flatten a jump's rise wherever its frame is uncertain; this term does not.
+    height_weight: float = 0.0
     # where a decoded motion's root comes from (decode: sampling and the training report; training's
     # losses always see the pose decoder's own output). "decoder": the pose decoder's root joint, as in
     # the paper and the release, kept near the trajectory by L_cons only. "trajectory": the body the pose
     # decoder drew about its root, placed on the trajectory generator's path, which is what the end point
     # conditions (not in the paper nor the release; docs/generation.md gives the measurements).
+    # "ground": the trajectory's path on the ground plane, the pose decoder's own root height (a jump's
+    # rise and fall, drawn with the body that makes it; trained by height_weight).
     root: str = "trajectory"
     # what the pose decoder's outputs (and its teacher-forced inputs) are measured from. "world": the
     # dataset's frame, as in the paper and the release: the decoder draws the path itself, kept near
@@ -83,6 +89,8 @@ class ODMOConfig(Config):
         if min(self.vel_weight, self.energy_weight, self.free_energy_weight) < 0:
             raise ValueError(f"vel_weight, energy_weight and free_energy_weight must be non-negative, got "
                              f"{self.vel_weight}, {self.energy_weight}, {self.free_energy_weight}")
+        if self.height_weight < 0:
+            raise ValueError(f"height_weight must be non-negative, got {self.height_weight}")
 
 
 # The loss scales `odmo train` and `odmo ship` use, per dataset: value and source. ODMOConfig's own
@@ -263,8 +271,12 @@ class ODMO(nn.Module):
         the motion's root as cfg.root says."""
         trajectory, prepared = self._plan(z, labels, end_point)
         motion = self._poses(prepared, trajectory, target, teacher)
-        if self.cfg.root == "trajectory":
-            motion = motion - motion[:, :, :1] + trajectory[:, :, None]  # the same body about its root, on T-hat
+        if self.cfg.root != "decoder":
+            root = trajectory[:, :, None]  # (B, T, 1, 3)
+            if self.cfg.root == "ground":  # the decoder's own height over the path on the ground plane
+                up = self.cfg.up_axis
+                root = torch.cat([root[..., :up], motion[:, :, :1, up:up + 1], root[..., up + 1:]], dim=-1)
+            motion = motion - motion[:, :, :1] + root  # the same body about its root, on T-hat
         return trajectory, motion
 
     def _plan(self, z: torch.Tensor, labels: torch.Tensor, end_point: torch.Tensor) -> tuple[torch.Tensor, tuple]:

@@ -164,7 +164,8 @@ def reconstruction_error(model: ODMO, clips: ClipSet, idx: np.ndarray, batch: in
     sampling time, no teacher forcing): mean per-joint position error and end-point error (dataset
     units), the error of the body about its root beside that of the clips' own action-mean body
     (metrics.body_error, metrics.mean_pose_error), and the body's speed and amplitude over the clips'
-    own (metrics.damping_ratios)."""
+    own (metrics.damping_ratios), and the root height's amplitude over theirs ("height", the mean over
+    actions of metrics.root_height_speed_and_amplitude's ratio)."""
     model.eval()
     dev = model_device(model)
     joint_err, end_err, recons, reals, labs = [], [], [], [], []
@@ -180,9 +181,12 @@ def reconstruction_error(model: ODMO, clips: ClipSet, idx: np.ndarray, batch: in
         labs.append(labels.numpy())
     labs, recons, reals = np.concatenate(labs), np.concatenate(recons), np.concatenate(reals)
     damp = metrics.damping_ratios(recons, labs, reals, labs)
+    up = model.cfg.up_axis
+    height = metrics.class_ratios(metrics.root_height_speed_and_amplitude(recons, up)[1], labs,
+                                  metrics.root_height_speed_and_amplitude(reals, up)[1], labs)
     return {"mpjpe": float(torch.cat(joint_err).mean()), "end_error": float(torch.cat(end_err).mean()),
             "body": metrics.body_error(recons, reals), "body_mean_pose": metrics.mean_pose_error(reals, labs),
-            "speed": damp["speed"], "amplitude": damp["amplitude"]}
+            "speed": damp["speed"], "amplitude": damp["amplitude"], "height": metrics.mean_finite(height.values())}
 
 
 @torch.no_grad()
