@@ -59,8 +59,8 @@ class ODMOConfig(Config):
     # data; the free-running decoder is what drifts to a slow average. Trained from
     # TrainConfig.free_from on (by default once teacher forcing has decayed).
     free_energy_weight: float = 0.0
-    # weight of L_height, the relative error of the root height's speed and amplitude (losses.
-    # height_error; not in the paper nor the release), on the free-running decode when there is one.
+    # weight of L_height, the squared log ratios of the root height's speed and amplitude to the clip's
+    # (losses.height_error; not in the paper nor the release), on the free-running decode when there is one.
     # Squared position errors flatten a jump's rise wherever its frame is uncertain; this term does not.
     height_weight: float = 0.0
     # where a decoded motion's root comes from (decode: sampling and the training report; training's
