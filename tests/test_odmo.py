@@ -617,8 +617,8 @@ def test_height_error_known_values():
     assert torch.isfinite(losses.height_error(target, hopping(height=0.0), 1)).all()  # floored, not divided by 0
 
 
-def test_height_weight_enters_the_total_on_the_free_decode():
-    cfg = tiny_config(height_weight=2.0)
+def test_height_weight_enters_the_total_on_the_root_sampling_draws():
+    cfg = tiny_config(height_weight=2.0, root="ground")
     target = hopping(T=cfg.length).float().expand(2, -1, -1, -1)
     target = torch.cat([target, torch.zeros(2, cfg.length, cfg.n_joints - 3, 3)], dim=2)  # (2, T, J, 3)
     out = {"trajectory": target[:, :, 0], "motion": target, "free_motion": target.clone(),
@@ -627,6 +627,13 @@ def test_height_weight_enters_the_total_on_the_free_decode():
     terms = losses.odmo_terms(out, target, torch.tensor([0, 0]), cfg)
     assert terms["height"].item() == pytest.approx(losses.height_error(out["free_motion"], target, 1).mean().item())
     assert terms["height"].item() > 1.0  # the free decode's, not the first's (which is perfect)
+    # with the trajectory's root drawn, the trajectory's height is what the term reads
+    on_path = losses.odmo_terms(out, target, torch.tensor([0, 0]), replace(cfg, root="trajectory"))
+    assert on_path["height"].item() == pytest.approx(0.0, abs=1e-9)
+    out["trajectory"] = out["trajectory"].clone()
+    out["trajectory"][..., 1] = 0.0  # a path that does not leave the ground
+    on_path = losses.odmo_terms(out, target, torch.tensor([0, 0]), replace(cfg, root="trajectory"))
+    assert on_path["height"].item() == pytest.approx(terms["height"].item(), rel=1e-6)
     base = {k: torch.tensor(1.0) for k in ("mre", "es", "vae", "r", "cons")}
     assert losses.total_loss({**base, "height": torch.tensor(0.5)}, cfg).item() == 5.0
     assert losses.total_loss({**base, "height": torch.tensor(0.5)}, tiny_config()).item() == 4.0

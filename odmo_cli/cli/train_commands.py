@@ -106,7 +106,7 @@ def train_odmo_cmd(
     vel_weight: Annotated[Optional[float], typer.Option("--vel-weight", help="Weight of the joint-velocity error L_vel (0: off, as in the paper and the release).")] = None,
     energy_weight: Annotated[Optional[float], typer.Option("--energy-weight", help="Weight of L_energy, each joint's speed and amplitude about the root against the clip's (preset odmo: 2; 0: off, as in the paper and the release).")] = None,
     free_energy_weight: Annotated[Optional[float], typer.Option("--free-energy-weight", help="Weight of L_energy on a second, free-running decode of the same codes, as sampling runs it (preset odmo: 2; 0: off).")] = None,
-    height_weight: Annotated[Optional[float], typer.Option("--height-weight", help="Weight of L_height, the root height's speed and amplitude against the clip's, on the free-running decode (0: off, the default, as in the paper and the release); pair it with --root ground.")] = None,
+    height_weight: Annotated[Optional[float], typer.Option("--height-weight", help="Weight of L_height, the root height's speed and amplitude against the clip's, on the root that sampling draws (--root: the trajectory generator's, or the pose decoder's free-running decode; 0: off, the default, as in the paper and the release).")] = None,
     free_from: Annotated[Optional[int], typer.Option("--free-from", help="First epoch (0-based) of the free-running L_energy (default: once teacher forcing has decayed; half the epochs when it decays over all).")] = None,
     root: RootOpt = None,
     pose_frame: Annotated[Optional[str], typer.Option("--pose-frame", help="What the pose decoder draws from: world (the dataset's frame, the paper's) or path (each frame's point of the generated trajectory).")] = None,

@@ -109,6 +109,15 @@ def height_error(pred: torch.Tensor, target: torch.Tensor, up_axis: int, speed_f
             + torch.log((ap + amplitude_floor) / (at + amplitude_floor)).pow(2))
 
 
+def drawn_root(out: dict, cfg) -> torch.Tensor:
+    """The root whose height sampling draws, (B, T, 1, 3): the trajectory generator's with cfg.root
+    "trajectory", else the pose decoder's on its free-running decode when there is one (the decode
+    that sampling runs)."""
+    if cfg.root == "trajectory":
+        return out["trajectory"][:, :, None]
+    return out.get("free_motion", out["motion"])[:, :, :1]
+
+
 def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> dict[str, torch.Tensor]:
     """All loss terms for a batch whose first half is paired index-wise with its second half.
 
@@ -125,8 +134,7 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
     l_vel = sequence_error(out["motion"].diff(dim=1), motion.diff(dim=1), w)
     l_energy = energy_error(out["motion"], motion) if cfg.energy_weight else motion.new_zeros(len(motion))
     l_free = energy_error(out["free_motion"], motion) if "free_motion" in out else motion.new_zeros(len(motion))
-    # on the decode that sampling runs: the free-running one when there is one
-    l_height = (height_error(out.get("free_motion", out["motion"]), motion, cfg.up_axis) if cfg.height_weight
+    l_height = (height_error(drawn_root(out, cfg), motion, cfg.up_axis) if cfg.height_weight
                 else motion.new_zeros(len(motion)))
     half = len(motion) // 2
     mu, logvar = out["mu"], out["logvar"]

@@ -60,16 +60,18 @@ class ODMOConfig(Config):
     # TrainConfig.free_from on (by default once teacher forcing has decayed).
     free_energy_weight: float = 0.0
     # weight of L_height, the squared log ratios of the root height's speed and amplitude to the clip's
-    # (losses.height_error; not in the paper nor the release), on the free-running decode when there is one.
+    # (losses.height_error; not in the paper nor the release), on the root that sampling draws
+    # (losses.drawn_root): the trajectory generator's with root "trajectory", else the pose decoder's
+    # free-running decode.
     # Squared position errors flatten a jump's rise wherever its frame is uncertain; this term does not.
     height_weight: float = 0.0
     # where a decoded motion's root comes from (decode: sampling and the training report; training's
-    # losses always see the pose decoder's own output). "decoder": the pose decoder's root joint, as in
+    # losses see the pose decoder's own output, L_height excepted). "decoder": the pose decoder's root joint, as in
     # the paper and the release, kept near the trajectory by L_cons only. "trajectory": the body the pose
     # decoder drew about its root, placed on the trajectory generator's path, which is what the end point
     # conditions (not in the paper nor the release; docs/generation.md gives the measurements).
     # "ground": the trajectory's path on the ground plane, the pose decoder's own root height (a jump's
-    # rise and fall, drawn with the body that makes it; trained by height_weight).
+    # rise and fall, drawn with the body that makes it).
     root: str = "trajectory"
     # what the pose decoder's outputs (and its teacher-forced inputs) are measured from. "world": the
     # dataset's frame, as in the paper and the release: the decoder draws the path itself, kept near
