@@ -132,7 +132,7 @@ def test_build_chains_a_third_stage(lines_folder, tmp_path, monkeypatch):
     one = {"epochs": 1, "batch_size": 40, "pairs_per_epoch": 80, "val_every": 0, "threads": 1,
            "tf_start": 0.0, "tf_end": 0.0}
     tiny = {"odmo": {**one, "epochs": 2, "tf_start": 1.0, "tf_end": 0.3}, "odmo_stage2": one,
-            "odmo_stage3": {**one, "lr": 1e-4, "lr_final": 1e-5, "model": {"energy_weight": 0.3}}}
+            "odmo_stage3": {**one, "lr": 1e-4, "lr_final": 1e-5, "seed_offset": 2, "model": {"energy_weight": 0.3}}}
     monkeypatch.setitem(ship.RECIPES, str(lines_folder), tiny)
     monkeypatch.setitem(checkpoint.SHIPPED, str(lines_folder),
                         {"short": "lines", "odmo": "odmo_lines.pt", "classifier": "classifier_lines.pt"})
@@ -143,6 +143,8 @@ def test_build_chains_a_third_stage(lines_folder, tmp_path, monkeypatch):
     # a stage's "model" entry changes those config values only, on top of the file it started from
     assert ckpt["config"]["energy_weight"] == 0.3 and ckpt["config"]["free_energy_weight"] == 2.0  # the preset's
     assert ckpt["init"]["source"] == "odmo_lines.stage2.pt" and ckpt["init"]["train_config"]["lr_final"] == 1e-3
+    # a stage's seed_offset moves that stage's seed only
+    assert ckpt["train_config"]["seed"] == 2 and ckpt["init"]["train_config"]["seed"] == 0
     assert ckpt["init"]["init"]["source"] == "odmo_lines.stage1.pt" and ckpt["init"]["init"]["epoch"] == 2
     assert ship.total_epochs(str(lines_folder)) == 4
 
