@@ -655,3 +655,27 @@ def test_ground_root_keeps_the_path_and_the_decoders_height():
     assert torch.allclose(ground[:, :, 0][..., flat], traj[..., flat])  # on the trajectory's path
     assert torch.allclose(ground[:, :, 0, up], own[:, :, 0, up])  # at the decoder's height
     assert torch.allclose(ground - ground[:, :, :1], own - own[:, :, :1], atol=1e-6)  # the same body
+
+
+def test_train_parts_leaves_the_other_networks_as_they_were(demo_clips, tmp_path):
+    """--train-parts trajectory: a stage moves the trajectory generator's weights only; an unknown
+    part is a one-line user error before any data is read."""
+    first = tmp_path / "first.pt"
+    small = {"latent_dim": 4, "encoder_fc": 16, "traj_hidden": 16, "motion_hidden": 16}
+    train_odmo(demo_clips, TrainConfig(epochs=1, batch_size=8, val_every=0, threads=1), first, small)
+    start = torch.load(first, weights_only=True)["state_dict"]
+    tc = TrainConfig(epochs=2, batch_size=8, val_every=0, threads=1, lr=1e-2, train_parts="trajectory")
+    second = tmp_path / "second.pt"
+    train_odmo(demo_clips, tc, second, {"height_weight": 1.0}, init=first)
+    after = torch.load(second, weights_only=True)
+    assert after["train_config"]["train_parts"] == "trajectory"
+    moved = {k.split(".")[0] for k, v in after["state_dict"].items() if not torch.equal(v, start[k])}
+    assert moved == {"trajectory"}
+    assert TrainConfig(train_parts="motion, trajectory").parts() == ["motion", "trajectory"]
+    assert TrainConfig().parts() == ["encoder", "trajectory", "motion"]
+    with pytest.raises(UserError, match=r"^unknown part 'decoder' to train; valid: encoder, trajectory, motion"):
+        TrainConfig(train_parts="trajectory,decoder")
+    res = CliRunner().invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--train-parts", ",",
+                                   "--out", str(tmp_path / "y.pt")])
+    assert res.exit_code == 2 and "unknown part ',' to train" in res.stderr and "Traceback" not in res.stderr
+    assert res.stderr.count("\n") == 1 and not (tmp_path / "y.pt").exists()

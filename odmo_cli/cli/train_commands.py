@@ -109,6 +109,7 @@ def train_odmo_cmd(
     height_weight: Annotated[Optional[float], typer.Option("--height-weight", help="Weight of L_height, the root height's speed and amplitude against the clip's, on the root that sampling draws (--root: the trajectory generator's, or the pose decoder's free-running decode; 0: off, the default, as in the paper and the release).")] = None,
     free_from: Annotated[Optional[int], typer.Option("--free-from", help="First epoch (0-based) of the free-running L_energy (default: once teacher forcing has decayed; half the epochs when it decays over all).")] = None,
     root: RootOpt = None,
+    train_parts: Annotated[Optional[str], typer.Option("--train-parts", help="Train only these networks, comma-separated: encoder, trajectory, motion (default: all); the others keep their weights, as from --init.")] = None,
     pose_frame: Annotated[Optional[str], typer.Option("--pose-frame", help="What the pose decoder draws from: world (the dataset's frame, the paper's) or path (each frame's point of the generated trajectory).")] = None,
     checkpoint_every: CheckpointOpt = None, val_every: ValOpt = None,
     out: OutOpt = None, resume: ResumeOpt = None, threads: ThreadsOpt = 0,
@@ -154,7 +155,7 @@ def train_odmo_cmd(
     lr = 1e-3 if lr is None else lr
     tc = TrainConfig(**_given(epochs=_epochs(resume, epochs), batch_size=batch_size, checkpoint_every=checkpoint_every,
                               val_every=val_every, same_class_fraction=same_class, tf_per=tf_per,
-                              free_from=free_from, tf_start=tf_start, tf_end=tf_end),
+                              free_from=free_from, tf_start=tf_start, tf_end=tf_end, train_parts=train_parts),
                      lr=lr, lr_final=lr if lr_final is None else lr_final, tf_epochs=tf_epochs,
                      seed=seed, threads=threads)
     prints = _start(device, nproc)  # after the options' own checks, before any data is read

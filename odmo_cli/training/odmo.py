@@ -30,6 +30,9 @@ from odmo_cli.training.distributed import training_group
 from odmo_cli.training.loop import LoopConfig, Progress, Trainer, TrainResult, dataset_shapes
 
 
+PARTS = ("encoder", "trajectory", "motion")  # ODMO's networks: the LMP encoder, trajectory and pose generators
+
+
 @dataclass
 class TrainConfig(LoopConfig):
     epochs: int = 300
@@ -46,10 +49,17 @@ class TrainConfig(LoopConfig):
     pairs_per_epoch: int = 0  # 0: as many pairs as training clips
     same_class_fraction: float = 0.5  # the release pairs each clip with its class half the time; < 0: independent pairs
     grad_clip: float = 1.0  # as in the authors' release
+    # the networks this run trains, comma-separated (PARTS); "": all. The others keep their weights
+    # (a stage that should change what sampling draws of one part and leave the rest as they are)
+    train_parts: str = ""
 
     def __post_init__(self):
         if self.epochs <= 0 or self.batch_size <= 0:
             raise UserError(f"epochs and batch size must be positive, got {self.epochs} and {self.batch_size}")
+        bad = [p for p in self.parts() if p not in PARTS]
+        if bad or (self.train_parts and not self.parts()):
+            raise UserError(f"unknown part {(bad or [self.train_parts])[0]!r} to train; valid: {', '.join(PARTS)} "
+                            "(comma-separated)")
         if self.lr <= 0 or self.lr_final <= 0:
             raise UserError(f"learning rates must be positive, got {self.lr} and {self.lr_final}")
         if not (0 <= self.tf_end <= 1 and 0 <= self.tf_start <= 1):
@@ -61,6 +71,10 @@ class TrainConfig(LoopConfig):
         if self.same_class_fraction > 1:
             raise UserError(f"--same-class-fraction must be in [0, 1], got {self.same_class_fraction}")
         super().__post_init__()
+
+    def parts(self) -> list[str]:
+        """The networks this run trains (ODMO's submodules; all when train_parts is empty)."""
+        return [p.strip() for p in self.train_parts.split(",") if p.strip()] if self.train_parts else list(PARTS)
 
     def free_start(self) -> int:
         """The first epoch (0-based) that trains the free-running decode."""
@@ -88,7 +102,11 @@ class ODMOTrainer(Trainer):
     init: dict | None = None  # where the weights started (start_from), kept in every checkpoint
 
     def build_optimizers(self) -> dict:
-        return {"optimizer": torch.optim.Adam(self.model.parameters(), lr=self.tc.lr)}
+        trained = self.tc.parts()
+        for name in PARTS:  # frozen parts get no gradients (and no Adam state)
+            getattr(self.model, name).requires_grad_(name in trained)
+        params = [p for p in self.model.parameters() if p.requires_grad]
+        return {"optimizer": torch.optim.Adam(params, lr=self.tc.lr)}
 
     def setup(self) -> None:
         self.data = MotionDataset(self.clips, self.cfg.length, rng=self.np_rng)
@@ -96,6 +114,8 @@ class ODMOTrainer(Trainer):
     def train_epoch(self) -> dict[str, float]:
         tc, model, opt, dev, gen = self.tc, self.model, self.optimizers["optimizer"], self.device, self.torch_gen
         model.train()
+        for name in set(PARTS) - set(tc.parts()):  # frozen: batch norm keeps its running statistics too
+            getattr(model, name).eval()
         teacher_rate = tc.teacher_rate(self.epoch)
         free = self.cfg.free_energy_weight > 0 and self.epoch >= tc.free_start()  # a second, free-running decode
         n_pairs = tc.pairs_per_epoch or len(self.train_idx)
