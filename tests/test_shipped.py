@@ -217,9 +217,9 @@ def test_unmet_bars_names_each_miss():
 @pytest.mark.slow
 @pytest.mark.parametrize("short, dataset", [
     pytest.param("humanact12", "humanact12", marks=pytest.mark.xfail(strict=True, reason=(
-        "the new defaults and eighteen stages without teacher forcing (2026-12-03), the root on the trajectory: "
-        "FID 0.171, Diversity, Multimodality 1.73 (real 1.57), speed 0.95, amplitude 0.93 and dist_e 0.0042 "
-        "meet their bars; Acc 91.01 does not; lift dumbbell 73, warm up 77"))),
+        "the new defaults and nineteen stages without teacher forcing (2026-12-04), the root on the trajectory: "
+        "FID 0.142, Diversity, Multimodality 1.59 (real 1.57), speed 0.96, amplitude 0.92 and dist_e 0.0040 "
+        "meet their bars; Acc 92.75 does not; lift dumbbell 80, warm up 75"))),
     pytest.param("cmu", "cmu_mocap", marks=pytest.mark.xfail(strict=True, reason=(
         "the new defaults (2026-12-02) and a 40-epoch L_height stage (2026-12-04), the root on the trajectory: "
         "FID 0.449, speed 0.84, amplitude 0.89, Diversity, dist_e 0.072 and jump 86 meet their bars; Acc 80.62 "
