@@ -46,9 +46,10 @@ from odmo_cli.training.odmo import TrainConfig, train_odmo
 # it by 0.96 mm), then at 3e-3 -> 3e-5 (stages 17-20, each lowering it by more than 1 mm, stage 20 under a
 # rule that also asks the body error about the root to fall: docs/training.md).
 # On CMU MoCap one later stage: 40 epochs with L_height (weight 3) on the trajectory generator's root,
-# teacher forcing held at 0.3, constant rate 1e-4, the build's seed + 2 (`seed_offset`: seeds 0 and 1
-# of this stage had been run and read before its rule was set; seed 2 was the first run under it, and
-# met it on the validation split: docs/results.md).
+# training that network only (the encoder and pose decoder stay stage 1's), teacher forcing held at 0.3,
+# constant rate 1e-4, the build's seed + 3 (`seed_offset`: the seeds run before its rule was set are not
+# candidates; seed 3 was the first run of this shape under it, and met it on the validation split:
+# docs/results.md).
 # Classifier settings are those of the measured classifier runs (docs/evaluation.md).
 _FREE_STAGE = {"epochs": 100, "lr": 3e-4, "lr_final": 3e-4, "tf_start": 0.0, "tf_end": 0.0, "tf_epochs": 1,
                "free_from": 0, "threads": 2}
@@ -60,7 +61,8 @@ _FASTER_STAGE = {**_WEAK_ENERGY_STAGE, "lr": 1e-3}
 _FASTEST_STAGE = {**_WEAK_ENERGY_STAGE, "lr": 3e-3}
 # "seed_offset": this stage trains with the build's seed plus it
 _HEIGHT_STAGE = {"epochs": 40, "lr": 1e-4, "lr_final": 1e-4, "tf_start": 0.3, "tf_end": 0.3, "tf_epochs": 1,
-                 "free_from": 0, "val_every": 5, "threads": 2, "seed_offset": 2, "model": {"height_weight": 3.0}}
+                 "free_from": 0, "val_every": 5, "train_parts": "trajectory", "threads": 2, "seed_offset": 3,
+                 "model": {"height_weight": 3.0}}
 RECIPES = {
     "humanact12": {
         "odmo": {"epochs": 1000, "lr": 3e-3, "lr_final": 1e-4, "tf_epochs": 500, "threads": 2},
