@@ -15,6 +15,7 @@ Sources (papers in the project's shared folder):
 
 from __future__ import annotations
 
+import warnings
 from typing import Sequence
 
 import numpy as np
@@ -123,12 +124,19 @@ def feature_stats(features: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.
 
 
 def _sqrtm_product(sigma1: NDArray[np.float64], sigma2: NDArray[np.float64], eps: float) -> NDArray:
-    covmean = linalg.sqrtm(sigma1 @ sigma2)
+    # Fewer samples than feature dimensions make the product singular; scipy then warns on every
+    # call although the root below is checked (and retried with an offset), so the warning is
+    # noise in a command's output, not news.
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", linalg.LinAlgWarning)
+        covmean = linalg.sqrtm(sigma1 @ sigma2)
     if not np.all(np.isfinite(covmean)):
         # A (nearly) singular product can have no finite square root; shifting both
         # covariances by eps*I makes it well defined, as pytorch-fid does.
         offset = np.eye(sigma1.shape[0]) * eps
-        covmean = linalg.sqrtm((sigma1 + offset) @ (sigma2 + offset))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", linalg.LinAlgWarning)
+            covmean = linalg.sqrtm((sigma1 + offset) @ (sigma2 + offset))
     if np.iscomplexobj(covmean):
         # S1 S2 is similar to a PSD matrix, so its root is real in exact arithmetic; only a
         # tiny imaginary part is rounding.

@@ -104,6 +104,15 @@ def test_fid_with_singular_covariances_is_finite():
     assert np.isfinite(got) and got > 0.0
 
 
+def test_fid_of_a_tiny_set_is_quiet_and_zero_against_itself(recwarn):
+    # 2 samples in 30 dimensions (a small evaluation set): the covariances have rank 1, and scipy's
+    # "singular matrix" warning must not reach a command's output.
+    few = np.random.default_rng(0).normal(size=(2, 30))
+    assert metrics.fid_from_features(few, few) == pytest.approx(0.0, abs=1e-6)
+    assert np.isfinite(metrics.fid_from_features(few, np.random.default_rng(5).normal(size=(50, 30))))
+    assert not [w for w in recwarn if issubclass(w.category, linalg.LinAlgWarning)]
+
+
 def test_fid_retries_with_offset_when_sqrtm_is_not_finite(monkeypatch):
     real_sqrtm = linalg.sqrtm
     calls = []
