@@ -123,20 +123,22 @@ def feature_stats(features: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.
     return mu, sigma
 
 
-def _sqrtm_product(sigma1: NDArray[np.float64], sigma2: NDArray[np.float64], eps: float) -> NDArray:
-    # Fewer samples than feature dimensions make the product singular; scipy then warns on every
-    # call although the root below is checked (and retried with an offset), so the warning is
-    # noise in a command's output, not news.
+def _quiet_sqrtm(m: NDArray[np.float64]) -> NDArray:
+    """linalg.sqrtm without its singular-matrix warning: fewer samples than feature dimensions make
+    the product singular, and the caller checks (and retries) the root, so the warning is noise in a
+    command's output, not news."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", linalg.LinAlgWarning)
-        covmean = linalg.sqrtm(sigma1 @ sigma2)
+        return linalg.sqrtm(m)
+
+
+def _sqrtm_product(sigma1: NDArray[np.float64], sigma2: NDArray[np.float64], eps: float) -> NDArray:
+    covmean = _quiet_sqrtm(sigma1 @ sigma2)
     if not np.all(np.isfinite(covmean)):
         # A (nearly) singular product can have no finite square root; shifting both
         # covariances by eps*I makes it well defined, as pytorch-fid does.
         offset = np.eye(sigma1.shape[0]) * eps
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", linalg.LinAlgWarning)
-            covmean = linalg.sqrtm((sigma1 + offset) @ (sigma2 + offset))
+        covmean = _quiet_sqrtm((sigma1 + offset) @ (sigma2 + offset))
     if np.iscomplexobj(covmean):
         # S1 S2 is similar to a PSD matrix, so its root is real in exact arithmetic; only a
         # tiny imaginary part is rounding.
