@@ -7,7 +7,7 @@ Every checkpoint odmo writes is a dict (docs/formats.md, "Checkpoints"):
     dataset         dataset_description(clips): what the model was trained on
     state_dict      the weights (float32; shipped files: float16 and int8 rows, see float_state)
     optimizer*, epoch, rng, split, history   training state, for an exact resume
-    latent_bank, modes (ODMO), report        what training measured at the end
+    latent_bank, crop_bank, modes (ODMO), report   what training measured at the end
 It is written atomically and read with torch.load(weights_only=True): no pickled classes, so a
 file from anyone is safe to open.
 
@@ -93,6 +93,9 @@ def describe_checkpoint(path: str | Path) -> dict:
     bank = ckpt.get("latent_bank")
     last = ckpt.get("history", [])[-1:] or [{}]
     banks = {"latent_bank": f"{len(bank['codes'])} codes" if bank else "none (training not finished)"}
+    if ckpt.get("crop_bank"):
+        crops = ckpt["crop_bank"]
+        banks["crop_bank"] = f"{len(crops['codes'])} codes of random crops ({crops['passes']} passes): the mode mixtures' data"
     if ckpt["kind"] == "a2m":
         banks = {"bone_bank": f"{len(state['bone_bank'])} real bone-length sets for sampling"}
     elif ckpt["kind"] != "odmo":
@@ -233,10 +236,17 @@ class LoadedODMO(Loaded):
 
     bank: dict = field(default_factory=dict)  # codes (N, D), labels, end_points (N, 3), modes, names
     modes: dict = field(default_factory=dict)  # plain values, as stored (latent.fit_modes)
+    crops: dict | None = None  # latent.crop_bank: what the mixtures and KNN end points are fitted on, where present
     mixtures: dict = field(init=False, repr=False)  # sampling -> [ActionModes per action]
 
     def __post_init__(self):
         self.set_modes(self.modes)
+
+    @property
+    def mixture_bank(self) -> dict:
+        """The codes the mixtures were fitted on and end points are looked up in: one code per clip
+        (the latent bank), or the crop bank of a file refitted with `odmo modes --mixture-data crops`."""
+        return self.crops if self.crops is not None else self.bank
 
     def set_modes(self, modes: dict) -> None:
         self.modes = modes
@@ -301,8 +311,9 @@ def _odmo_from(path: Path, ckpt: dict, device: torch.device | None = None, root:
     model.eval()
     if device is not None:
         model.to(device)
-    modes = ckpt.get("modes") or fit_modes(ckpt["latent_bank"], model.cfg.n_classes)
-    loaded = LoadedODMO(model, ckpt["dataset"], str(path), ckpt["latent_bank"], modes)
+    crops = ckpt.get("crop_bank")
+    modes = ckpt.get("modes") or fit_modes(crops or ckpt["latent_bank"], model.cfg.n_classes)
+    loaded = LoadedODMO(model, ckpt["dataset"], str(path), ckpt["latent_bank"], modes, crops)
     if root is not None:
         loaded.set_root(root)
     return loaded

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from odmo_cli.data.dataset import MotionDataset
+from odmo_cli.data.dataset import MotionDataset, crop_pad_shift, random_start
 from odmo_cli.data.readers import ClipSet
 from odmo_cli.device import model_device
 
@@ -36,6 +36,50 @@ def latent_bank(model, clips: ClipSet, idx: np.ndarray, batch: int = 512) -> dic
         "modes": torch.from_numpy(clips.modes[idx].copy()),  # (N,) -1 when unknown
         "names": [clips.names[i] for i in idx],
     }
+
+
+# The authors' release fits each action's mode mixture, and finds the KNN end points, on the encoder
+# means of random crops of the training clips: `num_itr` passes of its training loader, 2048 clips a
+# pass drawn class-balanced (create_GMM in ensemble.py; num_itr in inference_odmo.py). The paper does
+# not say which crops; one code per clip (the bank above) sees only each clip's first T frames.
+CROP_PASSES = {"humanact12": 15, "cmu_mocap": 5, "uestc": 8}  # the release's num_itr
+DEFAULT_CROP_PASSES = 5
+CROPS_PER_PASS = 2048
+
+
+@torch.no_grad()
+def crop_bank(model, clips: ClipSet, idx: np.ndarray, passes: int, rng: np.random.Generator,
+              per_pass: int = CROPS_PER_PASS, batch: int = 512) -> dict:
+    """Codes of `passes` x `per_pass` random crops of clips[idx], drawn class-balanced (every action
+    equally often, clips uniformly within it) as the release's loader draws them; a crop drawn twice
+    (same clip, same start) is kept once. Keys: codes, labels, end_points as latent_bank's; clip (the
+    crop's position in idx, which is the latent bank's order when idx is its), start, passes."""
+    if passes < 1:
+        raise ValueError(f"passes must be at least 1, got {passes}")
+    labels = clips.labels[idx]
+    actions = np.unique(labels)
+    T = model.cfg.length
+    per_action = max(1, passes * per_pass // len(actions))
+    pairs = set()  # (position in idx, start)
+    for a in actions:
+        for p in rng.choice(np.flatnonzero(labels == a), per_action):
+            pairs.add((int(p), random_start(len(clips.motions[idx[p]]), T, rng)))
+    pairs = sorted(pairs)
+    model.eval()
+    dev = model_device(model)
+    codes, ends = [], []
+    for b in range(0, len(pairs), batch):
+        motion = torch.stack([torch.from_numpy(crop_pad_shift(clips.motions[idx[p]], T, s))
+                              for p, s in pairs[b:b + batch]])  # (B, T, J, 3)
+        mu, _ = model.encode(motion.to(dev))
+        codes.append(mu.cpu())
+        ends.append(motion[:, -1, 0])
+    return {"codes": torch.cat(codes),  # (M, D)
+            "labels": torch.from_numpy(labels[[p for p, _ in pairs]].copy()),  # (M,)
+            "end_points": torch.cat(ends),  # (M, 3)
+            "clip": torch.tensor([p for p, _ in pairs], dtype=torch.int32),  # (M,)
+            "start": torch.tensor([s for _, s in pairs], dtype=torch.int32),  # (M,)
+            "passes": passes}
 
 
 def centroids(codes: np.ndarray, labels: np.ndarray, n_classes: int) -> np.ndarray:

@@ -359,3 +359,78 @@ def test_interpolation_without_ends_blends_the_first_two_modes_or_two_codes(line
     res = CliRunner().invoke(app, ["interpolate", "--model", str(lines_model), "--action", "glide", "--from-mode", "0",
                                    "--out", str(tmp_path / "c.npz")])
     assert res.exit_code == 2 and "or none of them" in res.stderr
+
+
+# -- the mixtures' data: codes of random crops (the authors' release) -------------------------
+
+def test_crop_bank_draws_class_balanced_distinct_crops_and_encodes_them(make_humanact12, tmp_path):
+    from odmo_cli.data.dataset import crop_pad_shift
+    from odmo_cli.data.locate import resolve
+    from odmo_cli.data.readers import read_dataset
+    from odmo_cli.latent import crop_bank
+    from odmo_cli.models.odmo import ODMO, ODMOConfig
+
+    clips = read_dataset(*reversed(resolve(make_humanact12(tmp_path / "h", per_action=3, length=75))))
+    torch.manual_seed(0)
+    model = ODMO(ODMOConfig(length=60, latent_dim=4, encoder_hidden=8, encoder_fc=8, traj_hidden=8, motion_hidden=8))
+    idx = np.concatenate([np.flatnonzero(clips.labels == a)[1:] for a in range(12)])  # a subset, every action
+    bank = crop_bank(model, clips, idx, passes=1, rng=np.random.default_rng(0), per_pass=12 * 20)
+    clip, start = bank["clip"].numpy(), bank["start"].numpy()
+    assert len(set(zip(clip, start))) == len(clip)  # every crop once
+    assert (start >= 0).all() and (start <= 75 - 60).all()
+    assert np.array_equal(bank["labels"].numpy(), clips.labels[idx[clip]])
+    # 20 draws per action over its clips' 16 starts each: most are new crops, and no action is left out
+    counts = np.bincount(bank["labels"].numpy(), minlength=12)
+    assert (counts > 10).all() and (counts <= 20).all()
+    for r in (0, len(clip) // 2, len(clip) - 1):
+        crop = torch.from_numpy(crop_pad_shift(clips.motions[idx[clip[r]]], 60, int(start[r])))[None]
+        with torch.no_grad():
+            mu, _ = model.encode(crop)
+        assert torch.allclose(bank["codes"][r], mu[0], atol=1e-5)
+        assert torch.allclose(bank["end_points"][r], crop[0, -1, 0])
+    again = crop_bank(model, clips, idx, passes=1, rng=np.random.default_rng(0), per_pass=12 * 20)
+    assert torch.equal(again["codes"], bank["codes"])  # the draw is the seed's
+
+
+def test_end_points_are_looked_up_in_the_mixtures_data(lines_model):
+    loaded = load_odmo(lines_model)
+    assert loaded.crops is None and loaded.mixture_bank is loaded.bank  # trained files: one code per clip
+    crops = {k: v.clone() if torch.is_tensor(v) else v for k, v in loaded.bank.items()}
+    crops["end_points"][:] = torch.tensor([7.0, 0.0, -7.0])
+    loaded.crops = crops
+    batch = sample(loaded, ["glide"], 4, seed=0, lazy=True)
+    assert np.allclose(batch.end_points, [7.0, 0.0, -7.0])
+    loaded.crops = None  # one code per clip: the latent bank's real end points
+    batch = sample(loaded, ["glide"], 4, seed=0, lazy=True)
+    assert not np.allclose(batch.end_points, [7.0, 0.0, -7.0])
+
+
+def test_modes_refit_switches_the_mixtures_data(lines_model, lines_folder, tmp_path):
+    import json
+    import shutil
+
+    from odmo_cli import ship
+    from odmo_cli.checkpoint import load_checkpoint
+    from odmo_cli.latent import fit_modes
+
+    path = tmp_path / "copy.pt"
+    shutil.copy(lines_model, path)
+    res = CliRunner().invoke(app, ["modes", "--model", str(path), "--mixture-data", "crops"])
+    assert res.exit_code == 2 and "give --refit too" in res.output and "Traceback" not in res.output
+    res = CliRunner().invoke(app, ["modes", "--model", str(path), "--refit", "--mixture-data", "frames"])
+    assert res.exit_code == 2 and "valid: crops, clips" in res.output
+    assert "crop_bank" not in load_checkpoint(path)  # nothing written
+    res = CliRunner().invoke(app, ["modes", "--model", str(path), "--refit", "--mixture-data", "crops",
+                                   "--data", str(lines_folder), "--json"])
+    assert res.exit_code == 0, res.output
+    ckpt = load_checkpoint(path)
+    crops = ckpt["crop_bank"]
+    assert crops["passes"] == 5 and len(crops["codes"]) == len(ckpt["latent_bank"]["codes"])  # 12-frame clips: one crop each
+    refit = fit_modes(crops, 2, seed=0)
+    assert all(np.allclose(a["means"], b["means"]) for a, b in zip(refit["actions"], ckpt["modes"]["actions"]))
+    assert "crop_bank" in ship.compact(ckpt)  # a compact file keeps what its mixtures were fitted on
+    info = json.loads(CliRunner().invoke(app, ["info", "--model", str(path), "--json"]).stdout)
+    assert "5 passes" in info["crop_bank"]
+    res = CliRunner().invoke(app, ["modes", "--model", str(path), "--refit", "--mixture-data", "clips"])
+    assert res.exit_code == 0, res.output
+    assert "crop_bank" not in load_checkpoint(path) and load_odmo(path).crops is None

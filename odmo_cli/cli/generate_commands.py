@@ -217,6 +217,8 @@ def interpolate_cmd(
 def modes_cmd(
     model: ModelOpt = None,
     refit: Annotated[bool, typer.Option("--refit", help="Refit the mixtures and save them into the checkpoint.", metavar="")] = False,
+    mixture_data: Annotated[Optional[str], typer.Option("--mixture-data", help="With --refit: fit on crops (codes of random crops of the training clips, as the authors' release; needs the data) or clips (one code per clip). Default: the file's own.")] = None,
+    data: DataOpt = None,
     plot: Annotated[Optional[Path], typer.Option("--plot", help="Write a 2-D plot of the codes (.png).")] = None,
     projection: Annotated[str, typer.Option("--projection", help="The plot's 2-D projection: pca or tsne.")] = "pca",
     colour: Annotated[str, typer.Option("--colour", help="Colour the plot's points by action or by mode.")] = "action",
@@ -225,14 +227,16 @@ def modes_cmd(
 ):
     """Discovered modes per action: counts, silhouettes, agreement with ground-truth modes."""
     from odmo_cli.checkpoint import load_odmo
-    from odmo_cli.generation.generate import refit_modes
+    from odmo_cli.generation.generate import mixture_data as crops_for, refit_modes
     from odmo_cli.latent import mode_report
 
     if colour not in ("action", "mode"):
         raise UserError(f"unknown --colour {colour!r}; valid: action, mode")
+    if mixture_data is not None and not refit:
+        raise UserError("--mixture-data chooses what --refit fits on; give --refit too")
     loaded = load_odmo(model)
     if refit:
-        refit_modes(loaded, seed)
+        refit_modes(loaded, seed, False if mixture_data is None else crops_for(loaded, mixture_data, data, seed))
     rows = mode_report(loaded.bank, loaded.modes, loaded.actions)
     if plot is not None:
         _plot_modes(loaded, plot, projection, colour, action, seed)

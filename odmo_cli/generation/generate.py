@@ -22,7 +22,7 @@ from odmo_cli.device import generator, model_device
 from odmo_cli.errors import UserError
 from odmo_cli.generation.batch import MotionBatch, decode
 from odmo_cli.geometry.skeletons import get_skeleton
-from odmo_cli.latent import fit_modes, knn_end_points, sample_codes
+from odmo_cli.latent import CROP_PASSES, DEFAULT_CROP_PASSES, crop_bank, fit_modes, knn_end_points, sample_codes
 
 
 def parse_point(text: str, up_axis: int, name: str = "--end") -> tuple[np.ndarray, tuple[int, ...]]:
@@ -40,9 +40,11 @@ def parse_point(text: str, up_axis: int, name: str = "--end") -> tuple[np.ndarra
 
 
 def _end_points(loaded: LoadedODMO, action: int, codes: np.ndarray, fixed: np.ndarray | None) -> np.ndarray:
-    """KNN end points from the bank's codes of this action; user-fixed coordinates override them."""
-    own = loaded.bank["labels"].numpy() == action
-    ends = knn_end_points(loaded.bank["codes"].numpy()[own], loaded.bank["end_points"].numpy()[own], codes)
+    """KNN end points from the mixtures' codes of this action (loaded.mixture_bank); user-fixed
+    coordinates override them."""
+    bank = loaded.mixture_bank
+    own = bank["labels"].numpy() == action
+    ends = knn_end_points(bank["codes"].numpy()[own], bank["end_points"].numpy()[own], codes)
     if fixed is not None:
         given = ~np.isnan(fixed)
         ends[:, given] = fixed[given]
@@ -179,15 +181,51 @@ def interpolate(loaded: LoadedODMO, action: str, steps: int = 8, from_mode: int 
                        labels=np.full(steps, a), note=note)
 
 
-def refit_modes(loaded: LoadedODMO, seed: int = 0) -> None:
-    """Refit the mode mixtures from the latent bank and save them into the checkpoint (atomically)."""
-    loaded.set_modes(fit_modes(loaded.bank, loaded.model.cfg.n_classes, seed))
+def refit_modes(loaded: LoadedODMO, seed: int = 0, crops: dict | None | bool = False) -> None:
+    """Refit the mode mixtures and save them into the checkpoint (atomically). `crops`: False keeps
+    the file's mixture data (its crop bank, else its latent bank); None drops the crop bank and fits
+    on one code per clip; a dict (latent.crop_bank) becomes the file's crop bank."""
+    if crops is not False:
+        loaded.crops = crops
+    loaded.set_modes(fit_modes(loaded.mixture_bank, loaded.model.cfg.n_classes, seed))
     assets = Path(str(resources.files("odmo_cli") / "assets")).resolve()
     if Path(loaded.source).resolve().is_relative_to(assets):
         return  # never rewrite the shipped files; the refit serves this run only
     ckpt = load_checkpoint(loaded.source)
     ckpt["modes"] = loaded.modes
+    ckpt.pop("crop_bank", None)
+    if loaded.crops is not None:
+        ckpt["crop_bank"] = loaded.crops
     save_checkpoint(loaded.source, ckpt)
+
+
+MIXTURE_DATA = ("crops", "clips")  # `odmo modes --mixture-data`
+
+
+def mixture_data(loaded: LoadedODMO, kind: str, data: str | Path | None = None, seed: int = 0) -> dict | None:
+    """What refit_modes' `crops` takes for --mixture-data: "crops", a crop bank of the file's training
+    clips (its latent bank's names, read from the dataset: by name under `data`, or the motion folder
+    `data` itself); "clips", None (one code per clip)."""
+    from odmo_cli.data.locate import FOLDER_MANIFEST, resolve
+    from odmo_cli.data.readers import read_dataset
+
+    if kind not in MIXTURE_DATA:
+        raise UserError(f"unknown --mixture-data {kind!r}; valid: {', '.join(MIXTURE_DATA)}")
+    if kind == "clips":
+        return None
+    if data is not None and (Path(data) / FOLDER_MANIFEST).is_file():
+        manifest, root = resolve(data)
+    else:
+        manifest, root = resolve(loaded.dataset["name"], data)
+    clips = read_dataset(root, manifest)
+    where = {name: i for i, name in enumerate(clips.names)}
+    missing = [n for n in loaded.bank["names"] if n not in where]
+    if missing:
+        raise UserError(f"{len(missing)} of the model's training clips are not in the dataset given "
+                        f"(first: {missing[0]}); pass the data it was trained on")
+    idx = np.array([where[n] for n in loaded.bank["names"]], dtype=np.int64)
+    passes = CROP_PASSES.get(clips.manifest.name, DEFAULT_CROP_PASSES)
+    return crop_bank(loaded.model, clips, idx, passes, np.random.default_rng(seed + 50_000))
 
 
 def read_prefix(path: str | Path) -> np.ndarray:
