@@ -217,9 +217,9 @@ def test_unmet_bars_names_each_miss():
 @pytest.mark.slow
 @pytest.mark.parametrize("short, dataset", [
     pytest.param("humanact12", "humanact12", marks=pytest.mark.xfail(strict=True, reason=(
-        "the new defaults and nineteen stages without teacher forcing (2026-12-04), the root on the trajectory: "
-        "FID 0.142, Diversity, Multimodality 1.59 (real 1.57), speed 0.96, amplitude 0.92 and dist_e 0.0040 "
-        "meet their bars; Acc 92.75 does not; lift dumbbell 80, warm up 75"))),
+        "the new defaults and twenty stages without teacher forcing (2026-12-04), the root on the trajectory: "
+        "FID 0.092, every action >= 85 (warm up 86.8), Diversity, Multimodality 1.55 (real 1.57), speed 0.97, "
+        "amplitude 0.93 and dist_e 0.0036 meet their bars; Acc 94.09 does not"))),
     pytest.param("cmu", "cmu_mocap", marks=pytest.mark.xfail(strict=True, reason=(
         "the new defaults (2026-12-02) and a 40-epoch L_height stage (2026-12-04), the root on the trajectory: "
         "FID 0.458, speed 0.82, amplitude 0.87, Diversity, dist_e 0.073 and jump 85 meet their bars; Acc 81.41 "
