@@ -18,21 +18,26 @@ from odmo_cli.device import model_device
 
 
 @torch.no_grad()
-def latent_bank(model, clips: ClipSet, idx: np.ndarray, batch: int = 512) -> dict:
-    """Codes of the canonical crop (first T frames) of clips[idx] -> plain-value dict of tensors."""
+def _codes_and_ends(model, batches) -> tuple[torch.Tensor, torch.Tensor]:
+    """Encoder means and last-frame roots of motion batches, each (B, T, J, 3) -> (N, D), (N, 3)."""
     model.eval()
-    data = MotionDataset(clips, model.cfg.length, random_crop=False)
     dev = model_device(model)
     codes, ends = [], []
-    for b in range(0, len(idx), batch):
-        motion, _ = data.batch(idx[b:b + batch])
+    for motion in batches:
         mu, _ = model.encode(motion.to(dev))
         codes.append(mu.cpu())
         ends.append(motion[:, -1, 0])
+    return torch.cat(codes), torch.cat(ends)
+
+
+def latent_bank(model, clips: ClipSet, idx: np.ndarray, batch: int = 512) -> dict:
+    """Codes of the canonical crop (first T frames) of clips[idx] -> plain-value dict of tensors."""
+    data = MotionDataset(clips, model.cfg.length, random_crop=False)
+    codes, ends = _codes_and_ends(model, (data.batch(idx[b:b + batch])[0] for b in range(0, len(idx), batch)))
     return {
-        "codes": torch.cat(codes),  # (N, D)
+        "codes": codes,  # (N, D)
         "labels": torch.from_numpy(clips.labels[idx].copy()),  # (N,)
-        "end_points": torch.cat(ends),  # (N, 3)
+        "end_points": ends,  # (N, 3)
         "modes": torch.from_numpy(clips.modes[idx].copy()),  # (N,) -1 when unknown
         "names": [clips.names[i] for i in idx],
     }
@@ -47,7 +52,6 @@ DEFAULT_CROP_PASSES = 5
 CROPS_PER_PASS = 2048
 
 
-@torch.no_grad()
 def crop_bank(model, clips: ClipSet, idx: np.ndarray, passes: int, rng: np.random.Generator,
               per_pass: int = CROPS_PER_PASS, batch: int = 512) -> dict:
     """Codes of `passes` x `per_pass` random crops of clips[idx], drawn class-balanced (every action
@@ -65,18 +69,12 @@ def crop_bank(model, clips: ClipSet, idx: np.ndarray, passes: int, rng: np.rando
         for p in rng.choice(np.flatnonzero(labels == a), per_action):
             pairs.add((int(p), random_start(len(clips.motions[idx[p]]), T, rng)))
     pairs = sorted(pairs)
-    model.eval()
-    dev = model_device(model)
-    codes, ends = [], []
-    for b in range(0, len(pairs), batch):
-        motion = torch.stack([torch.from_numpy(crop_pad_shift(clips.motions[idx[p]], T, s))
-                              for p, s in pairs[b:b + batch]])  # (B, T, J, 3)
-        mu, _ = model.encode(motion.to(dev))
-        codes.append(mu.cpu())
-        ends.append(motion[:, -1, 0])
-    return {"codes": torch.cat(codes),  # (M, D)
+    codes, ends = _codes_and_ends(model, (
+        torch.stack([torch.from_numpy(crop_pad_shift(clips.motions[idx[p]], T, s)) for p, s in pairs[b:b + batch]])
+        for b in range(0, len(pairs), batch)))
+    return {"codes": codes,  # (M, D)
             "labels": torch.from_numpy(labels[[p for p, _ in pairs]].copy()),  # (M,)
-            "end_points": torch.cat(ends),  # (M, 3)
+            "end_points": ends,  # (M, 3)
             "clip": torch.tensor([p for p, _ in pairs], dtype=torch.int32),  # (M,)
             "start": torch.tensor([s for _, s in pairs], dtype=torch.int32),  # (M,)
             "passes": passes}
