@@ -69,8 +69,8 @@ _HEIGHT_STAGE = {"epochs": 40, "lr": 1e-4, "lr_final": 1e-4, "tf_start": 0.3, "t
                  "free_from": 0, "val_every": 5, "train_parts": "trajectory", "threads": 2, "seed_offset": 3,
                  "model": {"height_weight": 3.0}}
 # the pose decoder alone ("motion"): the codes and the root paths stay the previous stage's
-_DECODER_STAGE = {"epochs": 330, "lr": 1e-3, "lr_final": 3e-5, "tf_start": 0.0, "tf_end": 0.0, "tf_epochs": 1,
-                  "free_from": 0, "batch_size": 64, "val_every": 10, "train_parts": "motion", "threads": 2}
+_DECODER_STAGE = {**_DECAYED_STAGE, "epochs": 330, "lr": 1e-3, "batch_size": 64, "val_every": 10,
+                  "train_parts": "motion"}
 RECIPES = {
     "humanact12": {
         "odmo": {"epochs": 1000, "lr": 3e-3, "lr_final": 1e-4, "tf_epochs": 500, "threads": 2},
