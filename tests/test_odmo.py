@@ -15,10 +15,11 @@ from odmo_cli.cli import app
 from odmo_cli.data.demo import demo_folder
 from odmo_cli.data.locate import resolve
 from odmo_cli.data.readers import read_dataset
+from odmo_cli import metrics
 from odmo_cli.errors import UserError
 from odmo_cli.models import losses
 from odmo_cli.models.odmo import ODMO, ODMOConfig, condition
-from odmo_cli.training.odmo import ODMOTrainer, TrainConfig, model_config_for, train_odmo
+from odmo_cli.training.odmo import ODMOTrainer, TrainConfig, model_config_for, reconstruction_error, train_odmo
 
 
 @pytest.fixture(scope="module")
@@ -418,6 +419,13 @@ def test_checkpoint_is_safe_and_holds_the_latent_bank(demo_clips, tmp_path):
     assert result.report["held_out_mpjpe"] > 0
     assert 0 < result.report["held_out_body"] <= result.report["held_out_mpjpe"] + result.report["held_out_end_error"] + 1
     assert result.report["held_out_body_mean_pose"] >= 0  # 0 where every held-out action has one clip
+    # the fit on the training clips: the same measure on the clips the bank holds
+    fit = reconstruction_error(model, demo_clips, ckpt["split"]["train"].numpy())
+    assert result.report["train_body"] == pytest.approx(fit["body"], rel=1e-4)
+    assert result.report["train_mpjpe"] == pytest.approx(fit["mpjpe"], rel=1e-4) and fit["mpjpe"] > 0
+    real, labels = crops_from_start(demo_clips, ckpt["split"]["train"].numpy(), 60)
+    assert result.report["train_body_mean_pose"] == pytest.approx(
+        metrics.mean_pose_error(real.numpy(), labels.numpy()), rel=1e-5)
 
 
 def test_free_running_term_starts_once_teacher_forcing_has_decayed():

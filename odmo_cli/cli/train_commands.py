@@ -172,7 +172,8 @@ def train_odmo_cmd(
                   f"mean joint error {r['held_out_mpjpe']:.3f}, end-point error {r['held_out_end_error']:.3f}, "
                   f"speed {r['held_out_speed']:.2f} and amplitude {r['held_out_amplitude']:.2f} of the real clips'")
     console.print(f"body about the root: error {r['held_out_body']:.3f} (each clip's action-mean body: "
-                  f"{r['held_out_body_mean_pose']:.3f})")
+                  f"{r['held_out_body_mean_pose']:.3f}); on the training clips {r['train_body']:.3f} "
+                  f"({r['train_body_mean_pose']:.3f})")
     console.print(f"noise ceiling (best squared-error output under the posterior noise): speed "
                   f"{r['ceiling_speed']:.2f}, amplitude {r['ceiling_amplitude']:.2f}")
     console.print(f"latent space: centroid distance {r['centroid_distance']:.2f} (min {r['min_centroid_distance']:.2f}, "

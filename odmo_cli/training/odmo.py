@@ -245,14 +245,19 @@ def mode_homogeneity(clips: ClipSet, idx: np.ndarray, bank: dict, modes: dict, l
 
 
 def finish(trainer: ODMOTrainer) -> dict:
-    """Latent bank, mode mixtures, held-out reconstruction and latent separation; written into the checkpoint."""
+    """Latent bank, mode mixtures, held-out reconstruction and latent separation; written into the checkpoint.
+    The same reconstruction of the training clips ("train_"; their first crops) says whether the decoder
+    fits the clips it learnt from: a body error there no lower than the action-mean body's is under-fitting,
+    one far under the held-out error over-fitting."""
     model, clips = trainer.model, trainer.clips
     bank = latent_bank(model, clips, trainer.train_idx)
     held = trainer.val_idx if len(trainer.val_idx) else trainer.train_idx
     held_bank = latent_bank(model, clips, held)
+    fit = reconstruction_error(model, clips, trainer.train_idx)
     report = {
         "held_out_clips": int(len(held)),
         **{f"held_out_{k}": v for k, v in reconstruction_error(model, clips, held).items()},
+        **{f"train_{k}": fit[k] for k in ("mpjpe", "body", "body_mean_pose")},
         **{f"ceiling_{k}": v for k, v in noise_ceiling(model, clips, trainer.train_idx, trainer.tc.seed).items()},
         **separation(bank["codes"].numpy(), bank["labels"].numpy(), held_bank["codes"].numpy(),
                      held_bank["labels"].numpy(), trainer.cfg.n_classes),
