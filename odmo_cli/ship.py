@@ -90,8 +90,7 @@ RECIPES = {
         "odmo": {"epochs": 650, "lr": 3e-3, "lr_final": 1e-4, "tf_epochs": 325, "threads": 2},
         "odmo_stage2": _HEIGHT_STAGE,
         "odmo_stage3": _DECODER_STAGE,
-        "odmo_stage4": _FAST_DECODER_STAGE,
-        "odmo_stage5": _FAST_DECODER_STAGE,
+        **{f"odmo_stage{n}": _FAST_DECODER_STAGE for n in (4, 5)},
         "classifier": {"epochs": 100, "speed": 1.0, "threads": 1},
     },
 }
