@@ -575,7 +575,9 @@ def noise_ceiling(codes: ArrayLike, stds: ArrayLike, motions: ArrayLike, labels:
     no amount of training will reach it.
 
     codes, stds (N, D): each clip's posterior mean and standard deviation; motions (N, T, J, 3);
-    labels (N,); `draws` noise draws per clip.
+    labels (N,); `draws` noise draws per clip. Also "body": body_error of those averages against their
+    clips, the least body error about the root a squared-error decoder can reach under that noise
+    (0 when each code names its clip; mean_pose_error when every code of a class is the same).
     """
     mu = np.asarray(codes, dtype=np.float64)
     s = np.broadcast_to(np.asarray(stds, dtype=np.float64), mu.shape)
@@ -583,7 +585,7 @@ def noise_ceiling(codes: ArrayLike, stds: ArrayLike, motions: ArrayLike, labels:
     y = _as_labels(labels, m.shape[0])
     if mu.shape[0] != m.shape[0]:
         raise ValueError(f"codes ({mu.shape[0]}) and motions ({m.shape[0]}) differ in number")
-    best, best_y = [], []
+    best, best_y, clip = [], [], []
     for c in np.unique(y).tolist():
         own = np.flatnonzero(y == c)
         mc, sc, xc = mu[own], s[own], m[own].reshape(len(own), -1)  # (n, D), (n, D), (n, T*J*3)
@@ -595,7 +597,9 @@ def noise_ceiling(codes: ArrayLike, stds: ArrayLike, motions: ArrayLike, labels:
             w /= w.sum(1, keepdims=True)
             best.append((w @ xc).reshape(m[own].shape))
             best_y.append(np.full(len(own), c))
-    return damping_ratios(np.concatenate(best), np.concatenate(best_y), m, y, smooth)
+            clip.append(m[own])
+    best = np.concatenate(best)
+    return {**damping_ratios(best, np.concatenate(best_y), m, y, smooth), "body": body_error(best, np.concatenate(clip))}
 
 
 # ---------------------------------------------------------------------------------------------

@@ -432,8 +432,12 @@ def test_noise_ceiling_from_exact_codes_to_class_average():
     rng = np.random.default_rng(0)
     sharp = metrics.noise_ceiling(codes, np.full((2, 2), 1e-3), m, labels, rng)
     assert sharp["speed"] == pytest.approx(1.0, abs=1e-6)  # the code names its clip: nothing is averaged
+    assert sharp["body"] == pytest.approx(0.0, abs=1e-6)
     blurred = metrics.noise_ceiling(codes, np.full((2, 2), 1e3), m, labels, rng)
     assert blurred["speed"] < 0.01 and blurred["amplitude"] < 0.01
+    # every clip drawn as the class average: the body error of the action-mean body
+    assert blurred["body"] == pytest.approx(metrics.mean_pose_error(m, labels), rel=1e-3)
+    assert blurred["body"] > 0.05  # antiphase swings: their average stands still
     # clips of other classes never mix in, however close their codes
     other = metrics.noise_ceiling(codes, np.full((2, 2), 1e3), m, np.array([0, 1]), rng)
     assert other["speed"] == pytest.approx(1.0, abs=1e-6)
