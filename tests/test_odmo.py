@@ -12,13 +12,14 @@ import torch
 from typer.testing import CliRunner
 
 from odmo_cli.cli import app
+from odmo_cli.checkpoint import load_model
 from odmo_cli.data.demo import demo_folder
 from odmo_cli.data.locate import resolve
 from odmo_cli.data.readers import read_dataset
 from odmo_cli import metrics
 from odmo_cli.errors import UserError
 from odmo_cli.models import losses
-from odmo_cli.models.odmo import ODMO, ODMOConfig, condition
+from odmo_cli.models.odmo import ODMO, ODMOConfig, condition, widen_pose_decoder
 from odmo_cli.training.odmo import ODMOTrainer, TrainConfig, model_config_for, reconstruction_error, train_odmo
 
 
@@ -479,6 +480,9 @@ def test_init_starts_a_stage_from_a_finished_model(demo_clips, tmp_path):
     with pytest.raises(UserError, match="either --init"):
         train_odmo(demo_clips, tc, tmp_path / "x.pt", init=first, resume=second)
     with pytest.raises(UserError, match=r"^--init first.pt's weights do not fit this model: size mismatch"):
+        train_odmo(demo_clips, tc, tmp_path / "x.pt", {"traj_hidden": 8}, init=first)
+    with pytest.raises(UserError, match=r"^--motion-hidden 8: --init first.pt's pose decoder has 16 units; "
+                                        r"it can be widened, not narrowed$"):
         train_odmo(demo_clips, tc, tmp_path / "x.pt", {"motion_hidden": 8}, init=first)
     with pytest.raises(UserError, match=r"^--init first.pt draws poses in the world frame; .* not path$"):
         train_odmo(demo_clips, tc, tmp_path / "x.pt", {"pose_frame": "path"}, init=first)  # as a ship stage could
@@ -486,6 +490,48 @@ def test_init_starts_a_stage_from_a_finished_model(demo_clips, tmp_path):
     res = CliRunner().invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--init", str(first),
                                    "--resume", str(second), "--out", str(tmp_path / "y.pt")])
     assert res.exit_code == 2 and "either --init" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_widened_pose_decoder_draws_the_same_motion_and_grows(demo_clips, tmp_path):
+    """widen_pose_decoder: more units, the same function; the new units learn from the first step.
+    Through --init and --motion-hidden: the wider stage starts where the narrow file stood."""
+    torch.manual_seed(0)
+    narrow, wide = ODMO(tiny_config(motion_hidden=6)), ODMO(tiny_config(motion_hidden=10))
+    fresh = wide.state_dict()
+    state = widen_pose_decoder(narrow.state_dict(), fresh)
+    wide.load_state_dict(state)
+    assert torch.equal(state["motion.cell0.weight_ih"][6:10], fresh["motion.cell0.weight_ih"][6:10])  # a new unit's gate i
+    g = torch.Generator().manual_seed(1)
+    motion, labels = torch.randn(5, 8, 4, 3, generator=g), torch.tensor([0, 1, 2, 0, 1])
+    with torch.no_grad():
+        z, end = torch.randn(5, 5, generator=g), torch.randn(5, 3, generator=g)
+        for teacher in (None, torch.tensor([True, False] * 4)):
+            a = narrow.decode(z, labels, end, motion, teacher)[1]
+            b = wide.decode(z, labels, end, motion, teacher)[1]
+            assert torch.allclose(a, b, atol=1e-6)
+    out = wide(motion, labels, generator=torch.Generator().manual_seed(2))["motion"]
+    (out - motion).square().mean().backward()
+    grad = wide.motion.out.weight.grad[:, 6:]  # from the new units: zero weights, not zero gradients
+    assert torch.isfinite(grad).all() and grad.abs().max() > 0
+    with pytest.raises(ValueError, match="only be widened: 10 hidden units, asked 6"):
+        widen_pose_decoder(wide.state_dict(), narrow.state_dict())
+
+    first = tmp_path / "first.pt"
+    small = {"latent_dim": 4, "encoder_fc": 16, "traj_hidden": 16, "motion_hidden": 16}
+    train_odmo(demo_clips, TrainConfig(epochs=1, batch_size=8, val_every=0, threads=1), first, small)
+    res = CliRunner().invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--init", str(first),
+                                   "--motion-hidden", "24", "--epochs", "1", "--lr", "1e-9", "--val-every", "0",
+                                   "--threads", "1", "--batch-size", "8", "--out", str(tmp_path / "wide.pt"), "--json"])
+    assert res.exit_code == 0, res.output
+    before, after = (load_model(tmp_path / name).model.eval() for name in ("first.pt", "wide.pt"))
+    assert after.cfg.motion_hidden == 24 and before.cfg.motion_hidden == 16
+    with torch.no_grad():
+        z, labels, end = torch.zeros(3, 4), torch.tensor([0, 1, 2]), torch.zeros(3, 3)
+        assert torch.allclose(before.decode(z, labels, end)[1], after.decode(z, labels, end)[1], atol=1e-4)
+    res = CliRunner().invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--init", str(first),
+                                   "--motion-hidden", "0", "--out", str(tmp_path / "bad.pt")])
+    assert res.exit_code == 2 and "--motion-hidden must be a positive" in res.stderr and "Traceback" not in res.stderr
+    assert not (tmp_path / "bad.pt").exists()
 
 
 def test_teacher_forcing_decays_linearly():

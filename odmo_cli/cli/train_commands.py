@@ -111,6 +111,7 @@ def train_odmo_cmd(
     root: RootOpt = None,
     train_parts: Annotated[Optional[str], typer.Option("--train-parts", help="Train only these networks, comma-separated: encoder, trajectory, motion (default: all); the others keep their weights, as from --init.")] = None,
     pose_frame: Annotated[Optional[str], typer.Option("--pose-frame", help="What the pose decoder draws from: world (the dataset's frame, the paper's) or path (each frame's point of the generated trajectory).")] = None,
+    motion_hidden: Annotated[Optional[int], typer.Option("--motion-hidden", help="Hidden units of the pose decoder (default 128, the paper's); with --init, more than the file's widens its decoder, drawing the same motions at first.")] = None,
     checkpoint_every: CheckpointOpt = None, val_every: ValOpt = None,
     out: OutOpt = None, resume: ResumeOpt = None, threads: ThreadsOpt = 0,
     device: DeviceOpt = "cpu", nproc: NprocOpt = 1, seed: SeedOpt = 0, as_json: JsonOpt = False,
@@ -135,6 +136,8 @@ def train_odmo_cmd(
         raise UserError(f"unknown --root {root!r}; valid: {', '.join(ROOTS)}")
     if pose_frame is not None and init is not None:
         raise UserError("--pose-frame changes what the weights mean; a stage from --init keeps its file's")
+    if motion_hidden is not None and motion_hidden < 1:
+        raise UserError(f"--motion-hidden must be a positive number of units, got {motion_hidden}")
     scales = {"sigma2": sigma2, "recon_weight": recon_weight}  # ODMOConfig fields, given as --sigma2, --recon-weight
     for key, value in scales.items():
         if value is not None and not value > 0:
@@ -147,7 +150,7 @@ def train_odmo_cmd(
                   height_weight=height_weight)
     overrides = {"use_es": "es" not in (ablate or []), "use_traj": "traj" not in (ablate or []),
                  "use_cons": "cons" not in (ablate or []), "use_end_point": "end-point" not in (ablate or [])}
-    overrides.update(_given(**scales, pose_frame=pose_frame, root=root))
+    overrides.update(_given(**scales, pose_frame=pose_frame, root=root, motion_hidden=motion_hidden))
     if init is not None:  # the file's config stands but for what was asked: loss weights, ablations
         if resume is not None:
             raise UserError("give either --init (start a new stage from a model's weights) or --resume, not both")
@@ -175,7 +178,7 @@ def train_odmo_cmd(
                   f"{r['held_out_body_mean_pose']:.3f}); on the training clips {r['train_body']:.3f} "
                   f"({r['train_body_mean_pose']:.3f})")
     console.print(f"noise ceiling (best squared-error output under the posterior noise): speed "
-                  f"{r['ceiling_speed']:.2f}, amplitude {r['ceiling_amplitude']:.2f}")
+                  f"{r['ceiling_speed']:.2f}, amplitude {r['ceiling_amplitude']:.2f}, body error {r['ceiling_body']:.3f}")
     console.print(f"latent space: centroid distance {r['centroid_distance']:.2f} (min {r['min_centroid_distance']:.2f}, "
                   f"alpha {r['alpha']:g}), spread {r['spread']:.2f}, nearest-centroid accuracy "
                   f"{100 * r['nearest_centroid_acc']:.1f}%")

@@ -320,3 +320,40 @@ class ODMO(nn.Module):
             # values and gradients, at half the cost of decoding it twice
             out["free_motion"] = self._poses(prepared, trajectory) if forced else out["motion"]
         return out
+
+
+def widen_pose_decoder(state: dict[str, torch.Tensor], fresh: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """`state` (an ODMO state dict) in a model whose pose decoder has more hidden units, the same
+    function: `fresh` is the wider model's own (initialised) state dict.
+
+    The old units keep their weights; the new ones keep `fresh`'s incoming weights and biases, and
+    every weight from a new unit into an old unit or into the output starts at zero, so the wider
+    decoder draws exactly what the narrow one drew and training grows the new units from there
+    (their outgoing weights have gradients at once). Applies to `motion.*` (MotionGenerator: its
+    trajectory LSTM and its two LSTM cells, whose rows are the i, f, g, o gates of H units each).
+    """
+    h = state["motion.out.weight"].shape[1]
+    h2 = fresh["motion.out.weight"].shape[1]
+    if h2 < h:
+        raise ValueError(f"the pose decoder can only be widened: {h} hidden units, asked {h2}")
+    out = {}
+    for k, new in fresh.items():
+        old = state[k]
+        if not k.startswith("motion.") or old.shape == new.shape:
+            out[k] = old
+            continue
+        w = new.clone()
+        if k == "motion.out.weight":  # (P, H): zero from the new units
+            w[:, :h], w[:, h:] = old, 0
+        elif k.startswith(("motion.embed.", "motion.traj_embed.")):  # rows are units
+            w[:h] = old
+        else:  # LSTM weights (4 H2, H2 or input) and biases (4 H2): the old units' gate rows
+            for g in range(4):
+                rows = slice(g * h2, g * h2 + h)
+                if w.dim() == 2:
+                    w[rows] = 0
+                    w[rows, :old.shape[1]] = old[g * h:(g + 1) * h]
+                else:
+                    w[rows] = old[g * h:(g + 1) * h]
+        out[k] = w
+    return out

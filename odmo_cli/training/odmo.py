@@ -24,7 +24,7 @@ from odmo_cli.device import model_device
 from odmo_cli.errors import UserError
 from odmo_cli.latent import ActionModes, assign, fit_modes, latent_bank, separation
 from odmo_cli.models.losses import odmo_terms, total_loss
-from odmo_cli.models.odmo import ODMO, ODMOConfig, preset_values
+from odmo_cli.models.odmo import ODMO, ODMOConfig, preset_values, widen_pose_decoder
 from odmo_cli.parallel import thread_count
 from odmo_cli.training.distributed import training_group
 from odmo_cli.training.loop import LoopConfig, Progress, Trainer, TrainResult, dataset_shapes
@@ -159,8 +159,15 @@ class ODMOTrainer(Trainer):
         schedule, a fresh optimizer). Its model config must be this run's but for the loss terms."""
         if ckpt["dataset"] != dataset_description(self.clips):
             raise UserError(f"--init {source} was trained on {ckpt['dataset']['name']}, not {self.clips.manifest.name}")
+        state = float_state(ckpt)
+        narrow = int(ckpt["config"].get("motion_hidden", 128))
+        if self.model.cfg.motion_hidden < narrow:
+            raise UserError(f"--motion-hidden {self.model.cfg.motion_hidden}: --init {source}'s pose decoder has "
+                            f"{narrow} units; it can be widened, not narrowed")
+        if self.model.cfg.motion_hidden > narrow:  # new units from this run's seeded initialisation
+            state = widen_pose_decoder(state, self.model.state_dict())
         try:  # float16 values are copied into the float32 parameters
-            self.model.load_state_dict(float_state(ckpt))
+            self.model.load_state_dict(state)
         except RuntimeError as e:  # a size or a key that differs (an override of the architecture)
             raise UserError(f"--init {source}'s weights do not fit this model: {str(e).splitlines()[-1].strip()}") from None
         self.init = {"source": source, "epoch": int(ckpt["epoch"]), "train_config": ckpt["train_config"],
@@ -212,7 +219,8 @@ def reconstruction_error(model: ODMO, clips: ClipSet, idx: np.ndarray, batch: in
 @torch.no_grad()
 def noise_ceiling(model: ODMO, clips: ClipSet, idx: np.ndarray, seed: int, batch: int = 512) -> dict[str, float]:
     """metrics.noise_ceiling of the model's own posterior over clips[idx] (canonical crops): the
-    speed and amplitude that the best squared-error decoder could reach under that noise."""
+    speed and amplitude that the best squared-error decoder could reach under that noise, and the
+    least body error about the root it could reach."""
     model.eval()
     mus, stds, motions, labels = [], [], [], []
     for b in range(0, len(idx), batch):
@@ -224,7 +232,7 @@ def noise_ceiling(model: ODMO, clips: ClipSet, idx: np.ndarray, seed: int, batch
         labels.append(lab.numpy())
     c = metrics.noise_ceiling(np.concatenate(mus), np.concatenate(stds), np.concatenate(motions),
                               np.concatenate(labels), np.random.default_rng(seed), draws=2)
-    return {"speed": c["speed"], "amplitude": c["amplitude"]}
+    return {"speed": c["speed"], "amplitude": c["amplitude"], "body": c["body"]}
 
 
 def mode_homogeneity(clips: ClipSet, idx: np.ndarray, bank: dict, modes: dict, length: int) -> float:
