@@ -156,7 +156,8 @@ class ODMOTrainer(Trainer):
 
     def start_from(self, ckpt: dict, source: str) -> None:
         """Start from another finished ODMO checkpoint's weights (a fine-tuning stage: this run's
-        schedule, a fresh optimizer). Its model config must be this run's but for the loss terms."""
+        schedule, a fresh optimizer). Its model config must be this run's but for the loss terms and a
+        wider pose decoder (--motion-hidden), which is widened to draw what the file drew."""
         if ckpt["dataset"] != dataset_description(self.clips):
             raise UserError(f"--init {source} was trained on {ckpt['dataset']['name']}, not {self.clips.manifest.name}")
         state = float_state(ckpt)
