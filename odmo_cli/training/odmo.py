@@ -161,7 +161,7 @@ class ODMOTrainer(Trainer):
         if ckpt["dataset"] != dataset_description(self.clips):
             raise UserError(f"--init {source} was trained on {ckpt['dataset']['name']}, not {self.clips.manifest.name}")
         state = float_state(ckpt)
-        narrow = int(ckpt["config"].get("motion_hidden", 128))
+        narrow = state["motion.out.weight"].shape[1]  # the file's pose decoder width, read off its weights
         if self.model.cfg.motion_hidden < narrow:
             raise UserError(f"--motion-hidden {self.model.cfg.motion_hidden}: --init {source}'s pose decoder has "
                             f"{narrow} units; it can be widened, not narrowed")
