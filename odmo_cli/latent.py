@@ -114,6 +114,10 @@ def separation(train_codes: np.ndarray, train_labels: np.ndarray, test_codes: np
 
 K_RANGE = (3, 11)
 MIN_MEMBERS = 10  # components with fewer members are dropped as noise
+# How k is chosen from the silhouette curve S_k (`odmo modes --refit --k-rule`): "paper", the supplement's
+# text (§2.2: k 3..11, the first i with S_i > 0.95 S_{i+1}); "release", the authors' code
+# (`sample_code_multimodal` in ensemble.py: k 3..9, raised while S_{k+1} >= 0.95 S_k, 5 EM starts per fit).
+K_RULES = {"paper": {"k_range": K_RANGE, "n_init": 3}, "release": {"k_range": (3, 9), "n_init": 5}}
 
 
 @dataclass
@@ -141,19 +145,23 @@ class ActionModes:
                    dict(zip(d["ks"], d["silhouettes"])), d["note"])
 
 
-def choose_k(silhouettes: dict[int, float]) -> int:
-    """The first i (from the smallest k) with S_i > 0.95 S_{i+1}; the largest k if none."""
+def choose_k(silhouettes: dict[int, float], rule: str = "paper") -> int:
+    """k from the silhouette curve S_k. "paper": the first i (from the smallest k) with
+    S_i > 0.95 S_{i+1}, the largest k if none. "release": k raised from the smallest while
+    S_{k+1} >= 0.95 S_k, which goes on along a flat or slowly falling curve where "paper" stops."""
     ks = sorted(silhouettes)
     for i, j in zip(ks[:-1], ks[1:]):
-        if silhouettes[i] > 0.95 * silhouettes[j]:
+        if rule == "paper" and silhouettes[i] > 0.95 * silhouettes[j]:
+            return i
+        if rule == "release" and silhouettes[j] < 0.95 * silhouettes[i]:
             return i
     return ks[-1]
 
 
-def _gmm(codes: np.ndarray, k: int, seed: int):
+def _gmm(codes: np.ndarray, k: int, seed: int, n_init: int = 3):
     from sklearn.mixture import GaussianMixture  # imported here: sampling needs no sklearn
 
-    return GaussianMixture(n_components=k, covariance_type="full", n_init=3, reg_covar=1e-4,
+    return GaussianMixture(n_components=k, covariance_type="full", n_init=n_init, reg_covar=1e-4,
                            random_state=seed).fit(codes)
 
 
@@ -164,31 +172,35 @@ def single_gaussian(codes: np.ndarray, note: str = "") -> ActionModes:
     return ActionModes(codes.mean(0, keepdims=True), cov[None], np.array([len(codes)], dtype=np.int64), {}, note)
 
 
-def discover_modes(codes: np.ndarray, seed: int = 0, k_range: tuple[int, int] = K_RANGE,
-                   min_members: int = MIN_MEMBERS) -> ActionModes:
-    """Fit GMMs with k in k_range to one action's codes (N, D), pick k by the silhouette rule,
-    refit, and drop components with fewer than min_members codes."""
+def discover_modes(codes: np.ndarray, seed: int = 0, k_range: tuple[int, int] | None = None,
+                   min_members: int = MIN_MEMBERS, rule: str = "paper") -> ActionModes:
+    """Fit GMMs with k in k_range (default: the rule's) to one action's codes (N, D), pick k by the
+    silhouette rule (K_RULES), refit, and drop components with fewer than min_members codes."""
     import sklearn.metrics  # noqa: F401  loaded before the limit below, which binds loaded libraries only
     import sklearn.mixture  # noqa: F401
     from threadpoolctl import threadpool_limits
 
+    if rule not in K_RULES:
+        raise ValueError(f"unknown k rule {rule!r}; valid: {', '.join(K_RULES)}")
     # small matrices: threaded BLAS only adds overhead (x10 slower with another job running)
     with threadpool_limits(1):
-        return _discover(np.unique(codes.astype(np.float64), axis=0), seed, k_range, min_members)
+        return _discover(np.unique(codes.astype(np.float64), axis=0), seed, k_range or K_RULES[rule]["k_range"],
+                         min_members, rule)
 
 
-def _discover(codes: np.ndarray, seed: int, k_range: tuple[int, int], min_members: int) -> ActionModes:
+def _discover(codes: np.ndarray, seed: int, k_range: tuple[int, int], min_members: int, rule: str) -> ActionModes:
     lo, hi = k_range
+    n_init = K_RULES[rule]["n_init"]
     if len(codes) < lo * min_members:
         return single_gaussian(codes, f"{len(codes)} clips are too few for {lo} modes of {min_members}: one Gaussian")
     silhouettes = {}
     for k in range(lo, min(hi, len(codes) - 1) + 1):
-        labels = _gmm(codes, k, seed).predict(codes)
+        labels = _gmm(codes, k, seed, n_init).predict(codes)
         if len(np.unique(labels)) < 2:
             silhouettes[k] = -1.0
             continue
         silhouettes[k] = float(_silhouette(codes, labels))
-    gmm = _gmm(codes, choose_k(silhouettes), seed)
+    gmm = _gmm(codes, choose_k(silhouettes, rule), seed, n_init)
     counts = np.bincount(gmm.predict(codes), minlength=gmm.n_components)
     keep = counts >= min_members
     if not keep.any():
@@ -202,12 +214,13 @@ def _silhouette(codes: np.ndarray, labels: np.ndarray) -> float:
     return silhouette_score(codes, labels)
 
 
-def fit_modes(bank: dict, n_classes: int, seed: int = 0) -> dict:
-    """Mode mixtures per action plus one Gaussian per action (the paper's ODMO_conv), as plain values."""
+def fit_modes(bank: dict, n_classes: int, seed: int = 0, rule: str = "paper") -> dict:
+    """Mode mixtures per action (k chosen by `rule`, K_RULES) plus one Gaussian per action (the
+    paper's ODMO_conv), as plain values."""
     codes, labels = bank["codes"].numpy(), bank["labels"].numpy()
-    per_action = [discover_modes(codes[labels == c], seed) for c in range(n_classes)]
+    per_action = [discover_modes(codes[labels == c], seed, rule=rule) for c in range(n_classes)]
     conventional = [single_gaussian(codes[labels == c].astype(np.float64)) for c in range(n_classes)]
-    return {"seed": seed, "actions": [m.to_plain() for m in per_action],
+    return {"seed": seed, "rule": rule, "actions": [m.to_plain() for m in per_action],
             "conventional": [m.to_plain() for m in conventional]}
 
 

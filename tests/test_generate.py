@@ -42,6 +42,25 @@ def test_choose_k_rule():
     assert choose_k({3: 0.1, 4: 0.2, 5: 0.3}) == 5
 
 
+def test_choose_k_release_rule():
+    # the release's rule goes on while S does not fall by more than 5 %: a flat curve is climbed
+    flat = {3: 0.20, 4: 0.20, 5: 0.19, 6: 0.10, 7: 0.30}
+    assert choose_k(flat, "paper") == 3  # S_3 > 0.95 S_4 already
+    assert choose_k(flat, "release") == 5  # S_6 < 0.95 S_5 stops it at 5, whatever comes after
+    assert choose_k({3: 0.3, 4: 0.5, 5: 0.8, 6: 0.81}, "release") == 6  # rising to the end: the largest k
+    assert choose_k({3: 0.5, 4: 0.1}, "release") == 3
+
+
+def test_the_release_rule_climbs_only_to_nine_modes():
+    codes, _ = blobs(10, per=30, seed=10)
+    assert len(discover_modes(codes, seed=0).means) == 10  # the paper's k range reaches 11
+    release = discover_modes(codes, seed=0, rule="release")
+    assert len(release.means) == 9 and max(release.silhouettes) == 9  # k 3..9: two blobs share a mode
+    assert release.counts.sum() == 300
+    with pytest.raises(ValueError, match="valid: paper, release"):
+        discover_modes(codes, rule="elbow")
+
+
 def test_small_components_are_dropped_and_small_actions_fall_back():
     codes, _ = blobs(3, per=40)
     noise = np.random.default_rng(1).normal(30, 0.1, (4, 4))  # a far-away cluster of 4 codes
@@ -434,3 +453,32 @@ def test_modes_refit_switches_the_mixtures_data(lines_model, lines_folder, tmp_p
     res = CliRunner().invoke(app, ["modes", "--model", str(path), "--refit", "--mixture-data", "clips"])
     assert res.exit_code == 0, res.output
     assert "crop_bank" not in load_checkpoint(path) and load_odmo(path).crops is None
+
+
+def test_modes_refit_with_the_release_k_rule(lines_model, tmp_path):
+    import json
+    import shutil
+
+    from odmo_cli.checkpoint import load_checkpoint
+    from odmo_cli.latent import fit_modes
+
+    path = tmp_path / "copy.pt"
+    shutil.copy(lines_model, path)
+    before = load_checkpoint(path)["modes"]
+    assert before["rule"] == "paper"  # what training fits
+    res = CliRunner().invoke(app, ["modes", "--model", str(path), "--k-rule", "release"])
+    assert res.exit_code == 2 and "give --refit too" in res.output and "Traceback" not in res.output
+    res = CliRunner().invoke(app, ["modes", "--model", str(path), "--refit", "--k-rule", "elbow"])
+    assert res.exit_code == 2 and "valid: paper, release" in res.output and len(res.output.strip().splitlines()) == 1
+    assert load_checkpoint(path)["modes"]["seed"] == before["seed"]  # nothing written
+    res = CliRunner().invoke(app, ["modes", "--model", str(path), "--refit", "--k-rule", "release", "--seed", "3", "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout)["k_rule"] == "release"
+    ckpt = load_checkpoint(path)
+    expected = fit_modes(ckpt["latent_bank"], 2, seed=3, rule="release")
+    assert ckpt["modes"]["rule"] == "release" and ckpt["modes"]["seed"] == 3
+    assert all(np.allclose(a["means"], b["means"]) for a, b in zip(expected["actions"], ckpt["modes"]["actions"]))
+    assert all(max(a["ks"]) <= 9 for a in ckpt["modes"]["actions"] if a["ks"])  # the release's k range
+    res = CliRunner().invoke(app, ["modes", "--model", str(path), "--refit"])  # a later refit keeps the file's rule
+    assert res.exit_code == 0 and "k rule: release" in res.output
+    assert load_checkpoint(path)["modes"]["rule"] == "release"

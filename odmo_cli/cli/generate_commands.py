@@ -218,6 +218,7 @@ def modes_cmd(
     model: ModelOpt = None,
     refit: Annotated[bool, typer.Option("--refit", help="Refit the mixtures and save them into the checkpoint.", metavar="")] = False,
     mixture_data: Annotated[Optional[str], typer.Option("--mixture-data", help="With --refit: fit on crops (codes of random crops of the training clips, as the authors' release; needs the data) or clips (one code per clip). Default: the file's own.")] = None,
+    k_rule: Annotated[Optional[str], typer.Option("--k-rule", help="With --refit: how the number of modes k is chosen from the silhouette curve: paper (the supplement's text: k 3..11, the first i with S_i > 0.95 S_(i+1)) or release (the authors' code: k 3..9, raised while S_(k+1) >= 0.95 S_k). Default: the file's own.")] = None,
     data: DataOpt = None,
     plot: Annotated[Optional[Path], typer.Option("--plot", help="Write a 2-D plot of the codes (.png).")] = None,
     projection: Annotated[str, typer.Option("--projection", help="The plot's 2-D projection: pca or tsne.")] = "pca",
@@ -228,21 +229,26 @@ def modes_cmd(
     """Discovered modes per action: counts, silhouettes, agreement with ground-truth modes."""
     from odmo_cli.checkpoint import load_odmo
     from odmo_cli.generation.generate import mixture_data as crops_for, refit_modes
-    from odmo_cli.latent import mode_report
+    from odmo_cli.latent import K_RULES, mode_report
 
     if colour not in ("action", "mode"):
         raise UserError(f"unknown --colour {colour!r}; valid: action, mode")
     if mixture_data is not None and not refit:
         raise UserError("--mixture-data chooses what --refit fits on; give --refit too")
+    if k_rule is not None and not refit:
+        raise UserError("--k-rule chooses how --refit picks the number of modes; give --refit too")
+    if k_rule is not None and k_rule not in K_RULES:
+        raise UserError(f"unknown --k-rule {k_rule!r}; valid: {', '.join(K_RULES)}")
     loaded = load_odmo(model)
     if refit:
-        refit_modes(loaded, seed, False if mixture_data is None else crops_for(loaded, mixture_data, data, seed))
+        refit_modes(loaded, seed, False if mixture_data is None else crops_for(loaded, mixture_data, data, seed), k_rule)
     rows = mode_report(loaded.bank, loaded.modes, loaded.actions)
     if plot is not None:
         _plot_modes(loaded, plot, projection, colour, action, seed)
     if as_json:
-        return print_json({"model": loaded.source, "actions": rows, "plot": str(plot) if plot else None})
-    table = Table(title=f"modes of {Path(loaded.source).name}")
+        return print_json({"model": loaded.source, "k_rule": loaded.modes.get("rule", "paper"), "actions": rows,
+                           "plot": str(plot) if plot else None})
+    table = Table(title=f"modes of {Path(loaded.source).name} (k rule: {loaded.modes.get('rule', 'paper')})")
     columns = ["action", "clips", "modes", "members", "true modes", "ARI"] + (["silhouette by k"] if wide else [])
     for col in columns:
         table.add_column(col, no_wrap=col == "action", justify="left" if col in ("action", "members") else "right")

@@ -22,7 +22,7 @@ from odmo_cli.device import generator, model_device
 from odmo_cli.errors import UserError
 from odmo_cli.generation.batch import MotionBatch, decode
 from odmo_cli.geometry.skeletons import get_skeleton
-from odmo_cli.latent import CROP_PASSES, DEFAULT_CROP_PASSES, crop_bank, fit_modes, knn_end_points, sample_codes
+from odmo_cli.latent import CROP_PASSES, DEFAULT_CROP_PASSES, K_RULES, crop_bank, fit_modes, knn_end_points, sample_codes
 
 
 def parse_point(text: str, up_axis: int, name: str = "--end") -> tuple[np.ndarray, tuple[int, ...]]:
@@ -181,13 +181,17 @@ def interpolate(loaded: LoadedODMO, action: str, steps: int = 8, from_mode: int 
                        labels=np.full(steps, a), note=note)
 
 
-def refit_modes(loaded: LoadedODMO, seed: int = 0, crops: dict | None | bool = False) -> None:
+def refit_modes(loaded: LoadedODMO, seed: int = 0, crops: dict | None | bool = False, rule: str | None = None) -> None:
     """Refit the mode mixtures and save them into the checkpoint (atomically). `crops`: False keeps
     the file's mixture data (its crop bank, else its latent bank); None drops the crop bank and fits
-    on one code per clip; a dict (latent.crop_bank) becomes the file's crop bank."""
+    on one code per clip; a dict (latent.crop_bank) becomes the file's crop bank. `rule`: how k is
+    chosen (latent.K_RULES); None keeps the file's."""
+    rule = rule or loaded.modes.get("rule", "paper")
+    if rule not in K_RULES:
+        raise UserError(f"unknown --k-rule {rule!r}; valid: {', '.join(K_RULES)}")
     if crops is not False:
         loaded.crops = crops
-    loaded.set_modes(fit_modes(loaded.mixture_bank, loaded.model.cfg.n_classes, seed))
+    loaded.set_modes(fit_modes(loaded.mixture_bank, loaded.model.cfg.n_classes, seed, rule))
     assets = Path(str(resources.files("odmo_cli") / "assets")).resolve()
     if Path(loaded.source).resolve().is_relative_to(assets):
         return  # never rewrite the shipped files; the refit serves this run only
