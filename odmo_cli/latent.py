@@ -149,6 +149,8 @@ def choose_k(silhouettes: dict[int, float], rule: str = "paper") -> int:
     """k from the silhouette curve S_k. "paper": the first i (from the smallest k) with
     S_i > 0.95 S_{i+1}, the largest k if none. "release": k raised from the smallest while
     S_{k+1} >= 0.95 S_k, which goes on along a flat or slowly falling curve where "paper" stops."""
+    if rule not in K_RULES:
+        raise ValueError(f"unknown k rule {rule!r}; valid: {', '.join(K_RULES)}")
     ks = sorted(silhouettes)
     for i, j in zip(ks[:-1], ks[1:]):
         if rule == "paper" and silhouettes[i] > 0.95 * silhouettes[j]:

@@ -49,6 +49,8 @@ def test_choose_k_release_rule():
     assert choose_k(flat, "release") == 5  # S_6 < 0.95 S_5 stops it at 5, whatever comes after
     assert choose_k({3: 0.3, 4: 0.5, 5: 0.8, 6: 0.81}, "release") == 6  # rising to the end: the largest k
     assert choose_k({3: 0.5, 4: 0.1}, "release") == 3
+    with pytest.raises(ValueError, match="valid: paper, release"):
+        choose_k(flat, "elbow")
 
 
 def test_the_release_rule_climbs_only_to_nine_modes():
