@@ -248,6 +248,12 @@ class LoadedODMO(Loaded):
         (the latent bank), or the crop bank of a file refitted with `odmo modes --mixture-data crops`."""
         return self.crops if self.crops is not None else self.bank
 
+    @property
+    def k_rule(self) -> str:
+        """How the mixtures' number of modes was chosen (latent.K_RULES); files fitted before the
+        choice was recorded used the paper's rule."""
+        return self.modes.get("rule", "paper")
+
     def set_modes(self, modes: dict) -> None:
         self.modes = modes
         self.mixtures = {"mode-preserving": [ActionModes.from_plain(m) for m in modes["actions"]],

@@ -120,6 +120,13 @@ MIN_MEMBERS = 10  # components with fewer members are dropped as noise
 K_RULES = {"paper": {"k_range": K_RANGE, "n_init": 3}, "release": {"k_range": (3, 9), "n_init": 5}}
 
 
+def k_rule_settings(rule: str) -> dict:
+    """K_RULES[rule]: the rule's k range and EM starts per fit."""
+    if rule not in K_RULES:
+        raise ValueError(f"unknown k rule {rule!r}; valid: {', '.join(K_RULES)}")
+    return K_RULES[rule]
+
+
 @dataclass
 class ActionModes:
     """A Gaussian mixture over one action's codes. weights follow the member counts."""
@@ -149,8 +156,7 @@ def choose_k(silhouettes: dict[int, float], rule: str = "paper") -> int:
     """k from the silhouette curve S_k. "paper": the first i (from the smallest k) with
     S_i > 0.95 S_{i+1}, the largest k if none. "release": k raised from the smallest while
     S_{k+1} >= 0.95 S_k, which goes on along a flat or slowly falling curve where "paper" stops."""
-    if rule not in K_RULES:
-        raise ValueError(f"unknown k rule {rule!r}; valid: {', '.join(K_RULES)}")
+    k_rule_settings(rule)
     ks = sorted(silhouettes)
     for i, j in zip(ks[:-1], ks[1:]):
         if rule == "paper" and silhouettes[i] > 0.95 * silhouettes[j]:
@@ -182,11 +188,10 @@ def discover_modes(codes: np.ndarray, seed: int = 0, k_range: tuple[int, int] | 
     import sklearn.mixture  # noqa: F401
     from threadpoolctl import threadpool_limits
 
-    if rule not in K_RULES:
-        raise ValueError(f"unknown k rule {rule!r}; valid: {', '.join(K_RULES)}")
+    settings = k_rule_settings(rule)
     # small matrices: threaded BLAS only adds overhead (x10 slower with another job running)
     with threadpool_limits(1):
-        return _discover(np.unique(codes.astype(np.float64), axis=0), seed, k_range or K_RULES[rule]["k_range"],
+        return _discover(np.unique(codes.astype(np.float64), axis=0), seed, k_range or settings["k_range"],
                          min_members, rule)
 
 

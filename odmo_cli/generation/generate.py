@@ -186,7 +186,7 @@ def refit_modes(loaded: LoadedODMO, seed: int = 0, crops: dict | None | bool = F
     the file's mixture data (its crop bank, else its latent bank); None drops the crop bank and fits
     on one code per clip; a dict (latent.crop_bank) becomes the file's crop bank. `rule`: how k is
     chosen (latent.K_RULES); None keeps the file's."""
-    rule = rule or loaded.modes.get("rule", "paper")
+    rule = rule or loaded.k_rule
     if rule not in K_RULES:
         raise UserError(f"unknown --k-rule {rule!r}; valid: {', '.join(K_RULES)}")
     if crops is not False:
