@@ -10,4 +10,13 @@ class UserError(Exception):
 
 
 class TrainingError(Exception):
-    """Training cannot go on (e.g. a non-finite loss); the last good checkpoint is kept."""
+    """Training cannot go on (e.g. a non-finite loss); the last good checkpoint is kept. Exit 1."""
+
+    exit_code = 1
+
+
+class PeerStopped(TrainingError):
+    """Another process of a run on several processes stopped first (failed or was interrupted).
+    Exit 3, so a launcher can tell this consequence from the cause: the other process's status."""
+
+    exit_code = 3

@@ -212,6 +212,58 @@ def test_ctrl_c_stops_every_process_and_keeps_the_last_epoch(tmp_path, where):
     assert ckpt["epoch"] >= 1 and len(ckpt["history"]) == ckpt["epoch"]
 
 
+
+class ScriptedProcess:
+    """A stand-in for one launched process: exits with `code` at poll number `at` (None: runs until
+    signalled; a signal ends it at once, SIGTERM and SIGINT with 130 as `odmo train` does)."""
+
+    def __init__(self, code, at):
+        self.code, self.at, self.polls, self.returncode, self.signals = code, at, 0, None, []
+
+    def poll(self):
+        self.polls += 1
+        if self.returncode is None and self.at is not None and self.polls >= self.at:
+            self.returncode = self.code
+        return self.returncode
+
+    def send_signal(self, sig):
+        self.signals.append(sig)
+        self.returncode = -signal.SIGKILL if sig == signal.SIGKILL else 130
+
+
+@pytest.mark.parametrize("script, status", [
+    ([(3, 2), (130, 3)], 130),     # rank 0 sees rank 1 leave before rank 1 has exited
+    ([(3, 2), (130, 2)], 130),     # both seen in the same poll
+    ([(130, 3), (3, 2)], 130),     # rank 0 interrupted on its own, rank 1 first to exit
+    ([(None, None), (1, 2)], 1),   # rank 1 fails: rank 0 is stopped, the failure is the status
+    ([(3, 2), (None, None)], 1),   # the other never exits: killed after the grace, a failure
+])
+def test_the_launcher_takes_its_status_from_the_process_that_stopped_on_its_own(script, status, monkeypatch):
+    from odmo_cli.training import distributed
+
+    procs = iter([ScriptedProcess(*s) for s in script])
+    monkeypatch.setattr(distributed.subprocess, "Popen", lambda *a, **k: next(procs))
+    monkeypatch.setattr(distributed.time, "sleep", lambda s: None)
+    assert distributed.launch(len(script), ["classifier"], grace=0.0) == status
+
+
+def test_a_failed_rank_says_why_when_rank_0_only_saw_it_leave(monkeypatch, capfd):
+    from odmo_cli.training import distributed
+
+    procs = [ScriptedProcess(3, 6), ScriptedProcess(1, 2)]
+    made = iter(procs)
+
+    def popen(*args, stdout=None, **kw):
+        if stdout is not None:
+            stdout.write(b"error: rank 1's own reason\n")
+        return next(made)
+
+    monkeypatch.setattr(distributed.subprocess, "Popen", popen)
+    monkeypatch.setattr(distributed.time, "sleep", lambda s: None)
+    assert distributed.launch(2, ["classifier"]) == 1
+    assert "rank 1's own reason" in capfd.readouterr().err
+    assert procs[0].signals == [signal.SIGTERM]  # stopped by the launcher after rank 1 failed
+
 # -- devices -----------------------------------------------------------------------------------
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a CUDA GPU")

@@ -52,7 +52,7 @@ class Command(_SwitchHelp, TyperCommand):
 
 class _Group(_SwitchHelp, TyperGroup):
     """Turns UserError from any command, and a usage error in its options, into one line on stderr
-    and exit status 2 (TrainingError: exit 1), before any work. `train` ends a Ctrl-C with status
+    and exit status 2 (TrainingError: its exit_code, 1 or 3), before any work. `train` ends a Ctrl-C with status
     130 after saving its checkpoint."""
 
     noun = "command"  # what its subcommands are, for the error naming the valid ones
@@ -66,7 +66,7 @@ class _Group(_SwitchHelp, TyperGroup):
         try:
             return super().invoke(ctx)
         except (UserError, TrainingError) as exc:
-            fail(str(exc), 2 if isinstance(exc, UserError) else 1)
+            fail(str(exc), 2 if isinstance(exc, UserError) else exc.exit_code)
         except ClickUsageError as exc:
             fail(_usage_line(exc))
 

@@ -38,7 +38,7 @@ import torch
 import torch.distributed as dist
 
 from odmo_cli.device import resolve_device
-from odmo_cli.errors import UserError
+from odmo_cli.errors import PeerStopped, UserError
 
 # What a collective raises when another process of the run has gone: gloo raises a plain
 # RuntimeError naming the closed connection, other backends a DistError.
@@ -231,7 +231,9 @@ def launch(nproc: int, argv: list[str], grace: float = 60.0) -> int:
     would) and return the exit status: 0, that of the first process that failed, or 130 when
     interrupted. Rank 0 prints; the others' output is shown only if they fail. Ctrl-C (SIGINT to
     this process) and a failing process stop all: each gets SIGINT or SIGTERM, rank 0 writes the
-    last completed epoch, and after `grace` seconds whatever still runs is killed."""
+    last completed epoch, and after `grace` seconds whatever still runs is killed. A process that
+    exits with PeerStopped's status (3) only saw another stop: the status is that other's (130
+    when it was interrupted on its own), whichever of the two the launcher sees exit first."""
     if nproc < 1:
         raise UserError(f"--nproc must be at least 1, got {nproc}")
     env = {**os.environ, "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(_free_port()),
@@ -258,19 +260,24 @@ def launch(nproc: int, argv: list[str], grace: float = 60.0) -> int:
                 stopping = stopping or time.monotonic()
                 _signal_all(procs, signal.SIGINT)
             failed = [p.returncode for p in procs if p.returncode not in (None, 0)]
-            if failed and stopping is None:  # one stopped on its own: stop the others (rank 0 saves)
-                status, stopping = failed[0], time.monotonic()
+            if status is None and not interrupts and _cause(procs) is not None:
+                # one stopped on its own: its status is the run's; stop the others (rank 0 saves)
+                status, stopping = _cause(procs), stopping or time.monotonic()
                 _signal_all(procs, signal.SIGTERM)
+            elif failed and stopping is None:
+                # only "another process stopped" so far: the one that did may still be tearing
+                # down (it leaves the group before it exits); wait for its status, up to `grace`
+                stopping = time.monotonic()
             if stopping is not None and time.monotonic() - stopping > grace:
                 _signal_all(procs, signal.SIGKILL)
-        codes = [p.returncode for p in procs]
-        if any(codes[1:]) and not codes[0]:
-            for log in logs:  # rank 0 said nothing of it: show what the others said
+        if status is None:  # all ended in one poll, or the last one only when killed
+            status = _cause(procs) if _cause(procs) is not None else max(p.returncode for p in procs)
+        if not interrupts and status and procs[0].returncode != status:
+            for log in logs:  # rank 0 did not say why: show what the others said
                 log.seek(0)
                 sys.stderr.write(log.read().decode(errors="replace"))
         if interrupts:
             return 130
-        status = status if status is not None else next((c for c in codes if c), 0)
         return status if status >= 0 else 1  # killed by a signal: a failure
     finally:
         if old is not None:
@@ -278,6 +285,12 @@ def launch(nproc: int, argv: list[str], grace: float = 60.0) -> int:
         _signal_all(procs, signal.SIGKILL)  # nothing outlives the launcher (a no-op when all ended)
         for log in logs:
             log.close()
+
+
+def _cause(procs) -> int | None:
+    """The exit status of the first process (by rank) that stopped on its own: not 0, not
+    PeerStopped's (a process that only saw another leave)."""
+    return next((p.returncode for p in procs if p.returncode not in (None, 0, PeerStopped.exit_code)), None)
 
 
 def _main_thread() -> bool:

@@ -51,7 +51,7 @@ from odmo_cli.config import Config
 from odmo_cli.data.dataset import split_indices
 from odmo_cli.data.readers import ClipSet
 from odmo_cli.device import generator
-from odmo_cli.errors import TrainingError, UserError
+from odmo_cli.errors import PeerStopped, TrainingError, UserError
 from odmo_cli.training.distributed import Group, peer_lost
 
 Progress = Callable[[dict], None]  # called after every epoch with that epoch's log (a dict)
@@ -285,7 +285,7 @@ class Trainer:
                 raise
             self._keep_snapshot()
             kept = f"epoch {self._snapshot['epoch']} is kept in {self.out}" if self._snapshot else "nothing was saved"
-            raise TrainingError(f"another training process stopped; {kept}") from None
+            raise PeerStopped(f"another training process stopped; {kept}") from None
         return self.history
 
     def _keep_snapshot(self) -> None:
