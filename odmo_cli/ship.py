@@ -11,7 +11,7 @@ stored as float16 (loaded back into float32 parameters). Most of ODMO's weights 
 generator's expand layer, (C*D + 3) x T(C*D + 3): 3.5 M of HumanAct12's 4.6 M values in the authors'
 architecture. Matrices that large are stored as int8 with one float32 scale per row (symmetric,
 |w| / 127 steps); `checkpoint.float_state` restores float32. Measured on the shipped HumanAct12 model (full
-protocol, 10 x 250): int8 rows for the expand layer leave Acc and FID unchanged (90.06 / 0.592 against
+protocol, 10 x 250; the file shipped on 2026-12-01): int8 rows for the expand layer leave Acc and FID unchanged (90.06 / 0.592 against
 90.06 / 0.593), while int8 for every matrix costs 1 point of Acc and raises FID to 0.764 (the
 autoregressive decoder amplifies the rounding), so only the large ones are rounded.
 """
@@ -42,8 +42,8 @@ from odmo_cli.training.odmo import TrainConfig, train_odmo
 # the lowest validation error of five continuations whose validation speed and amplitude stay within
 # the quality bars), then that stage at the rate 3e-3 -> 3e-5 for 660 epochs and twice for 330, each from
 # the previous stage's compact file, at the build's seed + 1 (stages 6-8, "the E line at seed 1": kept by a
-# rule on the validation split written before they ran, which they met; they replaced sixteen shorter
-# stages 6-21 that took 0.71 M pairs more: docs/training.md).
+# rule on the validation split written before they ran, which they met; they replaced sixteen stages
+# 6-21 that took 0.71 M pairs more: docs/training.md).
 # On CMU MoCap one later stage: 40 epochs with L_height (weight 3) on the trajectory generator's root,
 # training that network only (the encoder and pose decoder stay stage 1's), teacher forcing held at 0.3,
 # constant rate 1e-4, the build's seed + 3 (`seed_offset`: the seeds run before its rule was set are not
@@ -177,6 +177,18 @@ def build(dataset: str, data, out_dir: Path, seed: int = 0, skip_classifier: boo
     return reports
 
 
+def _check_finished(done: Path, stage: dict, seed: int) -> None:
+    """A UserError when a finished stage file beside the output was trained with other settings (a
+    build under an older recipe or another --seed): the build would go on from the wrong weights."""
+    tc = load_checkpoint(done).get("train_config", {})
+    wanted = {k: v for k, v in stage.items() if k not in ("model", "threads", "seed_offset")}
+    wanted["seed"] = seed + stage.get("seed_offset", 0)
+    differ = [f"{k} {tc.get(k)!r}, not {v!r}" for k, v in wanted.items() if tc.get(k) != v]
+    if differ:
+        raise UserError(f"{done} was trained with other settings than this recipe's stage ({'; '.join(differ)}); "
+                        "remove it to train that stage again, or build into another --out folder")
+
+
 def _odmo_stages(clips, recipe: dict, final: Path, seed: int, progress: Callable | None,
                  say: Callable[[str], None]) -> dict:
     """Train ODMO's stages into `final` (each later stage starts from the previous one's compact
@@ -190,6 +202,7 @@ def _odmo_stages(clips, recipe: dict, final: Path, seed: int, progress: Callable
         stage_progress = progress if not (progress and offset) else (
             lambda log, o=offset: progress({**log, "epoch": log["epoch"] + o}))
         if done != final and done.is_file() and not work.is_file():
+            _check_finished(done, recipe[key], seed)
             start, offset = done, offset + recipe[key]["epochs"]
             continue
         resume = work if work.is_file() else None

@@ -231,38 +231,70 @@ class ScriptedProcess:
         self.returncode = -signal.SIGKILL if sig == signal.SIGKILL else 130
 
 
+class FakeTime:
+    """The launcher's clock: each sleep moves it on, so waits are counted in polls, not seconds."""
+
+    def __init__(self):
+        self.now = 0.0
+
+    def sleep(self, seconds):
+        self.now += seconds
+
+    def monotonic(self):
+        return self.now
+
+
+def scripted_launch(monkeypatch, procs, logs=(), **kw):
+    """`launch` over scripted processes; logs[r - 1] is what rank r writes to its log."""
+    from odmo_cli.training import distributed
+
+    made = iter(procs)
+
+    def popen(*args, stdout=None, **_):
+        proc = next(made)
+        if stdout is not None and logs:
+            stdout.write(logs[procs.index(proc) - 1].encode())
+        return proc
+
+    monkeypatch.setattr(distributed.subprocess, "Popen", popen)
+    monkeypatch.setattr(distributed, "time", FakeTime())
+    return distributed.launch(len(procs), ["classifier"], **kw)
+
+
 @pytest.mark.parametrize("script, status", [
     ([(3, 2), (130, 3)], 130),     # rank 0 sees rank 1 leave before rank 1 has exited
     ([(3, 2), (130, 2)], 130),     # both seen in the same poll
     ([(130, 3), (3, 2)], 130),     # rank 0 interrupted on its own, rank 1 first to exit
+    ([(3, 2), (130, 40)], 130),    # the other exits late, within the wait
     ([(None, None), (1, 2)], 1),   # rank 1 fails: rank 0 is stopped, the failure is the status
-    ([(3, 2), (None, None)], 1),   # the other never exits: killed after the grace, a failure
+    ([(3, 2), (None, None)], 1),   # the other never exits: stopped after the wait, a failure
+    ([(3, 2), (3, 2)], 1),         # no cause seen at all: a failure, never the 3
 ])
 def test_the_launcher_takes_its_status_from_the_process_that_stopped_on_its_own(script, status, monkeypatch):
-    from odmo_cli.training import distributed
-
-    procs = iter([ScriptedProcess(*s) for s in script])
-    monkeypatch.setattr(distributed.subprocess, "Popen", lambda *a, **k: next(procs))
-    monkeypatch.setattr(distributed.time, "sleep", lambda s: None)
-    assert distributed.launch(len(script), ["classifier"], grace=0.0) == status
+    procs = [ScriptedProcess(*s) for s in script]
+    assert scripted_launch(monkeypatch, procs) == status
+    # the launcher signals no one before it has a cause, or until the wait (5 s, 50 polls) is over
+    assert all(not p.signals for p in procs if p.at is not None and p.at < 50)
 
 
 def test_a_failed_rank_says_why_when_rank_0_only_saw_it_leave(monkeypatch, capfd):
-    from odmo_cli.training import distributed
-
-    procs = [ScriptedProcess(3, 6), ScriptedProcess(1, 2)]
-    made = iter(procs)
-
-    def popen(*args, stdout=None, **kw):
-        if stdout is not None:
-            stdout.write(b"error: rank 1's own reason\n")
-        return next(made)
-
-    monkeypatch.setattr(distributed.subprocess, "Popen", popen)
-    monkeypatch.setattr(distributed.time, "sleep", lambda s: None)
-    assert distributed.launch(2, ["classifier"]) == 1
+    procs = [ScriptedProcess(3, 2), ScriptedProcess(1, 3)]
+    assert scripted_launch(monkeypatch, procs, logs=["error: rank 1's own reason\n"]) == 1
     assert "rank 1's own reason" in capfd.readouterr().err
-    assert procs[0].signals == [signal.SIGTERM]  # stopped by the launcher after rank 1 failed
+
+
+def test_a_failing_rank_stops_rank_0_with_sigterm_and_says_why(monkeypatch, capfd):
+    procs = [ScriptedProcess(None, None), ScriptedProcess(1, 2)]
+    assert scripted_launch(monkeypatch, procs, logs=["error: rank 1's own reason\n"]) == 1
+    assert procs[0].signals == [signal.SIGTERM]  # rank 0 saves on SIGTERM, as on Ctrl-C
+    assert "rank 1's own reason" in capfd.readouterr().err
+
+
+def test_rank_0_failing_on_its_own_is_not_followed_by_the_others_logs(monkeypatch, capfd):
+    procs = [ScriptedProcess(1, 2), ScriptedProcess(None, None)]
+    assert scripted_launch(monkeypatch, procs, logs=["rank 1 was only stopped\n"]) == 1
+    assert procs[1].signals == [signal.SIGTERM]
+    assert "rank 1 was only stopped" not in capfd.readouterr().err
 
 # -- devices -----------------------------------------------------------------------------------
 

@@ -108,7 +108,8 @@ def test_build_writes_both_files_deterministically(lines_folder, tmp_path, monke
 def test_build_continues_at_the_stage_it_stopped_in(lines_folder, lines_model, tmp_path, monkeypatch):
     """A first stage finished by an earlier, interrupted build is not trained again: the second
     stage starts from its file, which is removed once the shipped file is written."""
-    tiny = {"odmo": {"epochs": 3, "batch_size": 40, "pairs_per_epoch": 80, "val_every": 0, "threads": 1},
+    first = {k: load_checkpoint(lines_model)["train_config"][k] for k in ("epochs", "batch_size", "pairs_per_epoch", "lr")}
+    tiny = {"odmo": {**first, "val_every": 0, "threads": 1},  # lines_model was trained as this stage
             "odmo_stage2": {"epochs": 1, "batch_size": 40, "pairs_per_epoch": 80, "val_every": 0, "threads": 1,
                             "tf_start": 0.0, "tf_end": 0.0}}
     monkeypatch.setitem(ship.RECIPES, str(lines_folder), tiny)
@@ -120,10 +121,27 @@ def test_build_continues_at_the_stage_it_stopped_in(lines_folder, lines_model, t
     epochs = []
     ship.build(str(lines_folder), None, tmp_path, skip_classifier=True, say=lambda m: None,
                progress=lambda log: epochs.append(log["epoch"]))
-    assert calls == [1] and epochs == [4]  # stage 2 only, counted after stage 1's 3 epochs
+    assert calls == [1] and epochs == [151]  # stage 2 only, counted after stage 1's 150 epochs
     assert sorted(p.name for p in tmp_path.iterdir()) == ["odmo_lines.pt"]
     assert load_checkpoint(tmp_path / "odmo_lines.pt")["init"]["epoch"] == 150  # lines_model's length
-    assert ship.total_epochs(str(lines_folder)) == 4
+    assert ship.total_epochs(str(lines_folder)) == 151
+
+
+@pytest.mark.parametrize("change, named", [({"epochs": 7}, "epochs 150, not 7"), ({"seed_offset": 1}, "seed 0, not 1")])
+def test_build_refuses_a_finished_stage_trained_otherwise(lines_folder, lines_model, tmp_path, monkeypatch, change, named):
+    """A stage file left by a build under another recipe (or --seed) is not taken as finished: one
+    line naming the file and the setting, and nothing trained or removed."""
+    first = {k: load_checkpoint(lines_model)["train_config"][k] for k in ("epochs", "batch_size", "pairs_per_epoch", "lr")}
+    tiny = {"odmo": {**first, "val_every": 0, "threads": 1, **change},
+            "odmo_stage2": {"epochs": 1, "batch_size": 40, "pairs_per_epoch": 80, "val_every": 0, "threads": 1}}
+    monkeypatch.setitem(ship.RECIPES, str(lines_folder), tiny)
+    monkeypatch.setitem(checkpoint.SHIPPED, str(lines_folder),
+                        {"short": "lines", "odmo": "odmo_lines.pt", "classifier": "classifier_lines.pt"})
+    save_checkpoint(tmp_path / "odmo_lines.stage1.pt", ship.compact(load_checkpoint(lines_model)))
+    monkeypatch.setattr(ship, "train_odmo", lambda *a, **kw: pytest.fail("trained"))
+    with pytest.raises(UserError, match=f"odmo_lines.stage1.pt was trained with other settings.*{named}"):
+        ship.build(str(lines_folder), None, tmp_path, skip_classifier=True, say=lambda m: None)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["odmo_lines.stage1.pt"]
 
 
 def test_build_chains_a_third_stage(lines_folder, tmp_path, monkeypatch):

@@ -226,14 +226,16 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def launch(nproc: int, argv: list[str], grace: float = 60.0) -> int:
+def launch(nproc: int, argv: list[str], grace: float = 60.0, peer_wait: float = 5.0) -> int:
     """Run `odmo train <argv>` as `nproc` processes on this machine (as torchrun --standalone
-    would) and return the exit status: 0, that of the first process that failed, or 130 when
-    interrupted. Rank 0 prints; the others' output is shown only if they fail. Ctrl-C (SIGINT to
-    this process) and a failing process stop all: each gets SIGINT or SIGTERM, rank 0 writes the
-    last completed epoch, and after `grace` seconds whatever still runs is killed. A process that
-    exits with PeerStopped's status (3) only saw another stop: the status is that other's (130
-    when it was interrupted on its own), whichever of the two the launcher sees exit first."""
+    would) and return the exit status: 0, that of the process that stopped on its own, or 130 when
+    interrupted. Rank 0 prints; the others' output is shown when one of them was the cause. Ctrl-C
+    (SIGINT to this process) and a failing process stop all: each gets SIGINT or SIGTERM, rank 0
+    writes the last completed epoch, and `grace` seconds after that signal whatever still runs is
+    killed. A process that exits with PeerStopped's status (3) only saw another stop: the status is
+    that other's (130 when it was interrupted on its own), whichever of the two the launcher sees
+    exit first; if the other has not exited `peer_wait` seconds later, the rest are stopped and the
+    status is 1."""
     if nproc < 1:
         raise UserError(f"--nproc must be at least 1, got {nproc}")
     env = {**os.environ, "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(_free_port()),
@@ -245,7 +247,7 @@ def launch(nproc: int, argv: list[str], grace: float = 60.0) -> int:
     # Ctrl-C is noted, not raised: this loop must outlive it to pass it on and wait for rank 0's save
     interrupts: list[int] = []
     old = signal.signal(signal.SIGINT, lambda signum, frame: interrupts.append(signum)) if _main_thread() else None
-    status, stopping, forwarded = None, None, 0
+    status, stopping, forwarded, lost = None, None, 0, None
     try:
         for rank in range(nproc):
             out = None if rank == 0 else logs[rank - 1]
@@ -259,19 +261,23 @@ def launch(nproc: int, argv: list[str], grace: float = 60.0) -> int:
                 forwarded = len(interrupts)
                 stopping = stopping or time.monotonic()
                 _signal_all(procs, signal.SIGINT)
-            failed = [p.returncode for p in procs if p.returncode not in (None, 0)]
-            if status is None and not interrupts and _cause(procs) is not None:
-                # one stopped on its own: its status is the run's; stop the others (rank 0 saves)
-                status, stopping = _cause(procs), stopping or time.monotonic()
-                _signal_all(procs, signal.SIGTERM)
-            elif failed and stopping is None:
-                # only "another process stopped" so far: the one that did may still be tearing
-                # down (it leaves the group before it exits); wait for its status, up to `grace`
-                stopping = time.monotonic()
+            if status is None and not interrupts:  # nothing signalled by this launcher yet
+                if _cause(procs) is not None:
+                    # one stopped on its own: its status is the run's; stop the others (rank 0 saves)
+                    status, stopping = _cause(procs), time.monotonic()
+                    _signal_all(procs, signal.SIGTERM)
+                elif any(p.returncode == PeerStopped.exit_code for p in procs):
+                    # only "another process stopped" so far: the one that did may still be tearing
+                    # down (it leaves the group before it exits); wait a little for its status
+                    lost = lost or time.monotonic()
+                    if time.monotonic() - lost > peer_wait:
+                        status, stopping = 1, time.monotonic()
+                        _signal_all(procs, signal.SIGTERM)
             if stopping is not None and time.monotonic() - stopping > grace:
                 _signal_all(procs, signal.SIGKILL)
-        if status is None:  # all ended in one poll, or the last one only when killed
-            status = _cause(procs) if _cause(procs) is not None else max(p.returncode for p in procs)
+        if status is None:  # all ended within one poll
+            cause = _cause(procs)
+            status = cause if cause is not None else int(any(p.returncode for p in procs))
         if not interrupts and status and procs[0].returncode != status:
             for log in logs:  # rank 0 did not say why: show what the others said
                 log.seek(0)
