@@ -177,12 +177,18 @@ def build(dataset: str, data, out_dir: Path, seed: int = 0, skip_classifier: boo
     return reports
 
 
+def stage_settings(stage: dict, seed: int) -> dict:
+    """The TrainConfig values of a recipe stage in a build with `seed` (its seed_offset applied)."""
+    settings = {k: v for k, v in stage.items() if k not in ("model", "seed_offset")}
+    return {**settings, "seed": seed + stage.get("seed_offset", 0)}
+
+
 def _check_finished(done: Path, stage: dict, seed: int) -> None:
     """A UserError when a finished stage file beside the output was trained with other settings (a
-    build under an older recipe or another --seed): the build would go on from the wrong weights."""
+    build under an older recipe or another --seed): the build would go on from the wrong weights.
+    Threads are not compared: they change the speed, not the run."""
     tc = load_checkpoint(done).get("train_config", {})
-    wanted = {k: v for k, v in stage.items() if k not in ("model", "threads", "seed_offset")}
-    wanted["seed"] = seed + stage.get("seed_offset", 0)
+    wanted = {k: v for k, v in stage_settings(stage, seed).items() if k != "threads"}
     differ = [f"{k} {tc.get(k)!r}, not {v!r}" for k, v in wanted.items() if tc.get(k) != v]
     if differ:
         raise UserError(f"{done} was trained with other settings than this recipe's stage ({'; '.join(differ)}); "
@@ -206,8 +212,7 @@ def _odmo_stages(clips, recipe: dict, final: Path, seed: int, progress: Callable
             start, offset = done, offset + recipe[key]["epochs"]
             continue
         resume = work if work.is_file() else None
-        stage = {k: v for k, v in recipe[key].items() if k not in ("model", "seed_offset")}
-        tc = TrainConfig(**{**stage, "seed": seed + recipe[key].get("seed_offset", 0)})
+        tc = TrainConfig(**stage_settings(recipe[key], seed))
         say(f"training ODMO on {clips.manifest.name}{f', stage {i + 1}' if i else ''} ({tc.epochs} epochs"
             f"{', resuming ' + str(work) if resume else ''})")
         result = train_odmo(clips, tc, work, recipe[key].get("model"), resume=resume, progress=stage_progress,

@@ -212,7 +212,6 @@ def test_ctrl_c_stops_every_process_and_keeps_the_last_epoch(tmp_path, where):
     assert ckpt["epoch"] >= 1 and len(ckpt["history"]) == ckpt["epoch"]
 
 
-
 class ScriptedProcess:
     """A stand-in for one launched process: exits with `code` at poll number `at` (None: runs until
     signalled; a signal ends it at once, SIGTERM and SIGINT with 130 as `odmo train` does)."""
@@ -295,6 +294,7 @@ def test_rank_0_failing_on_its_own_is_not_followed_by_the_others_logs(monkeypatc
     assert scripted_launch(monkeypatch, procs, logs=["rank 1 was only stopped\n"]) == 1
     assert procs[1].signals == [signal.SIGTERM]
     assert "rank 1 was only stopped" not in capfd.readouterr().err
+
 
 # -- devices -----------------------------------------------------------------------------------
 

@@ -105,10 +105,15 @@ def test_build_writes_both_files_deterministically(lines_folder, tmp_path, monke
     assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
 
 
+def lines_model_stage(lines_model) -> dict:
+    """Recipe settings under which lines_model counts as a finished first stage."""
+    return {k: load_checkpoint(lines_model)["train_config"][k] for k in ("epochs", "batch_size", "pairs_per_epoch", "lr")}
+
+
 def test_build_continues_at_the_stage_it_stopped_in(lines_folder, lines_model, tmp_path, monkeypatch):
     """A first stage finished by an earlier, interrupted build is not trained again: the second
     stage starts from its file, which is removed once the shipped file is written."""
-    first = {k: load_checkpoint(lines_model)["train_config"][k] for k in ("epochs", "batch_size", "pairs_per_epoch", "lr")}
+    first = lines_model_stage(lines_model)
     tiny = {"odmo": {**first, "val_every": 0, "threads": 1},  # lines_model was trained as this stage
             "odmo_stage2": {"epochs": 1, "batch_size": 40, "pairs_per_epoch": 80, "val_every": 0, "threads": 1,
                             "tf_start": 0.0, "tf_end": 0.0}}
@@ -131,7 +136,7 @@ def test_build_continues_at_the_stage_it_stopped_in(lines_folder, lines_model, t
 def test_build_refuses_a_finished_stage_trained_otherwise(lines_folder, lines_model, tmp_path, monkeypatch, change, named):
     """A stage file left by a build under another recipe (or --seed) is not taken as finished: one
     line naming the file and the setting, and nothing trained or removed."""
-    first = {k: load_checkpoint(lines_model)["train_config"][k] for k in ("epochs", "batch_size", "pairs_per_epoch", "lr")}
+    first = lines_model_stage(lines_model)
     tiny = {"odmo": {**first, "val_every": 0, "threads": 1, **change},
             "odmo_stage2": {"epochs": 1, "batch_size": 40, "pairs_per_epoch": 80, "val_every": 0, "threads": 1}}
     monkeypatch.setitem(ship.RECIPES, str(lines_folder), tiny)

@@ -128,7 +128,7 @@ def test_shipped_odmo_was_trained_by_its_recipe(short, dataset):
     """The file's chain of stages (each stage's train config, newest first, in `init`) is the
     recipe's, stage by stage, and the last stage's model values are the recipe's."""
     from odmo_cli.checkpoint import shipped_file
-    from odmo_cli.ship import RECIPES, _stages
+    from odmo_cli.ship import RECIPES, _stages, stage_settings
 
     ckpt = torch.load(shipped_file(short), weights_only=True)
     chain, node = [ckpt["train_config"]], ckpt.get("init")
@@ -139,9 +139,9 @@ def test_shipped_odmo_was_trained_by_its_recipe(short, dataset):
     stages = _stages(recipe)
     assert len(chain) == len(stages)
     for tc, stage in zip(reversed(chain), stages):
-        wanted = {k: v for k, v in recipe[stage].items() if k not in ("model", "threads", "seed_offset")}
+        # every setting of the stage, its seed the first stage's plus the stage's offset
+        wanted = {k: v for k, v in stage_settings(recipe[stage], chain[-1]["seed"]).items() if k != "threads"}
         assert {k: tc[k] for k in wanted} == wanted, stage
-        assert tc["seed"] == chain[-1]["seed"] + recipe[stage].get("seed_offset", 0), stage
     for k, v in recipe[stages[-1]].get("model", {}).items():
         assert ckpt["config"][k] == v
 

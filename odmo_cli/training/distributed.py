@@ -262,9 +262,10 @@ def launch(nproc: int, argv: list[str], grace: float = 60.0, peer_wait: float = 
                 stopping = stopping or time.monotonic()
                 _signal_all(procs, signal.SIGINT)
             if status is None and not interrupts:  # nothing signalled by this launcher yet
-                if _cause(procs) is not None:
+                cause = _cause(procs)
+                if cause is not None:
                     # one stopped on its own: its status is the run's; stop the others (rank 0 saves)
-                    status, stopping = _cause(procs), time.monotonic()
+                    status, stopping = cause, time.monotonic()
                     _signal_all(procs, signal.SIGTERM)
                 elif any(p.returncode == PeerStopped.exit_code for p in procs):
                     # only "another process stopped" so far: the one that did may still be tearing
