@@ -296,6 +296,44 @@ def test_rank_0_failing_on_its_own_is_not_followed_by_the_others_logs(monkeypatc
     assert "rank 1 was only stopped" not in capfd.readouterr().err
 
 
+
+class Exited(Exception):
+    """os._exit, recorded instead of ending the test process."""
+
+
+@pytest.mark.parametrize("world, raised, status", [
+    ("2", SystemExit(130), 130), ("2", SystemExit(None), 0), ("2", SystemExit("a message"), 1), ("2", None, 0),
+    ("1", SystemExit(130), None), (None, SystemExit(130), None),
+])
+def test_a_training_process_leaves_with_the_commands_status_and_no_teardown(world, raised, status, monkeypatch, capsys):
+    """A process of a multi-process run ends by os._exit with its command's status (gloo's threads
+    may abort the interpreter's C++ teardown: SIGABRT instead of 130); any other run exits as usual."""
+    import odmo_cli.cli as cli
+
+    def command():
+        if raised is not None:
+            raise raised
+
+    def exit_now(code):
+        raise Exited(code)
+
+    monkeypatch.setattr(cli, "app", command)
+    monkeypatch.setattr(cli.os, "_exit", exit_now)
+    if world is None:
+        monkeypatch.delenv("WORLD_SIZE", raising=False)
+    else:
+        monkeypatch.setenv("WORLD_SIZE", world)
+    if status is None:  # not one of several processes: sys.exit's status travels as usual
+        with pytest.raises(SystemExit) as exc:
+            cli.main()
+        assert exc.value is raised
+        return
+    with pytest.raises(Exited) as exc:
+        cli.main()
+    assert exc.value.args == (status,)
+    assert ("a message" in capsys.readouterr().err) == (status == 1)
+
+
 # -- devices -----------------------------------------------------------------------------------
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a CUDA GPU")
