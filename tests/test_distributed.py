@@ -296,7 +296,6 @@ def test_rank_0_failing_on_its_own_is_not_followed_by_the_others_logs(monkeypatc
     assert "rank 1 was only stopped" not in capfd.readouterr().err
 
 
-
 class Exited(Exception):
     """os._exit, recorded instead of ending the test process."""
 
