@@ -20,6 +20,8 @@ import torch
 from odmo_cli.data.dataset import (
     MotionDataset,
     crop_pad_shift,
+    mirror,
+    mirror_map,
     pair_indices,
     random_start,
     split_indices,
@@ -607,3 +609,21 @@ def test_prepare_folder_keeps_split_column(tmp_path, make_motion_folder):
     prepare(manifest_for_folder(src2), src2, out2)
     with open(out2 / "index.csv", newline="") as f:
         assert next(csv.reader(f)) == ["motion", "action", "mode", "subject"]
+
+
+def test_mirror_swaps_partner_joints_keeps_the_facing_and_undoes_itself():
+    """HumanAct12's clips face along z with the hips side by side along x: mirroring across x swaps
+    the sides and keeps the figure facing forwards (left hip at +x before and after)."""
+    skeleton = load_manifest("humanact12").skeleton
+    perm, axis = mirror_map(skeleton.joint_names), skeleton.ground_axes[0]
+    left, right = skeleton.joint_names.index("left_hip"), skeleton.joint_names.index("right_hip")
+    motions = np.random.default_rng(0).normal(size=(3, 5, 24, 3)).astype(np.float32)  # (N, T, J, 3)
+    motions[:, :, left, 0], motions[:, :, right, 0] = 0.1, -0.1
+    out = mirror(motions, perm, axis)
+    np.testing.assert_array_equal(out[:, :, left, 0], np.float32(0.1))
+    np.testing.assert_array_equal(out[:, :, right, 0], np.float32(-0.1))
+    np.testing.assert_array_equal(out[:, :, left, 1:], motions[:, :, right, 1:])
+    np.testing.assert_array_equal(mirror(out, perm, axis), motions)
+    as_tensor = mirror(torch.from_numpy(motions), perm, axis)
+    assert isinstance(as_tensor, torch.Tensor) and as_tensor.dtype == torch.float32
+    np.testing.assert_array_equal(as_tensor.numpy(), out)

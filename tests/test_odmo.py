@@ -20,6 +20,8 @@ from odmo_cli import metrics
 from odmo_cli.errors import UserError
 from odmo_cli.models import losses
 from odmo_cli.models.odmo import ODMO, ODMOConfig, condition, widen_pose_decoder
+from odmo_cli.data.dataset import mirror, mirror_map
+from odmo_cli.training import odmo as odmo_training
 from odmo_cli.training.odmo import ODMOTrainer, TrainConfig, model_config_for, reconstruction_error, train_odmo
 
 
@@ -429,6 +431,25 @@ def test_checkpoint_is_safe_and_holds_the_latent_bank(demo_clips, tmp_path):
         metrics.mean_pose_error(real.numpy(), labels.numpy()), rel=1e-5)
 
 
+def test_mirror_feeds_each_crop_or_its_mirror_half_the_time(demo_clips, tmp_path, monkeypatch):
+    """TrainConfig.mirror: the epoch's crops are those of a run without it (its coins are drawn after
+    them), each as it is or mirrored, about half of them mirrored."""
+    seen = []
+    terms = odmo_training.odmo_terms
+    monkeypatch.setattr(odmo_training, "odmo_terms", lambda out, motion, *a: seen.append(motion) or terms(out, motion, *a))
+    for flag in (False, True):
+        torch.manual_seed(0)
+        cfg = model_config_for(demo_clips, {"motion_hidden": 8, "traj_hidden": 8})
+        ODMOTrainer(demo_clips, cfg, small_tc(epochs=1, batch_size=1024, mirror=flag), tmp_path / f"{flag}.pt").run()
+    plain, flipped = seen  # (2B, T, J, 3): one batch each
+    skeleton = demo_clips.manifest.skeleton
+    mirrored = mirror(plain, mirror_map(skeleton.joint_names), skeleton.ground_axes[0])
+    same = (flipped == plain).flatten(1).all(1)
+    was_mirrored = (flipped == mirrored).flatten(1).all(1)
+    assert bool((same | was_mirrored).all()) and not bool((same & was_mirrored).any())
+    assert 0.25 < was_mirrored.float().mean() < 0.75, was_mirrored.float().mean()
+
+
 def test_free_running_term_starts_once_teacher_forcing_has_decayed():
     assert TrainConfig(epochs=1000, tf_epochs=500).free_start() == 500
     assert TrainConfig(epochs=300).free_start() == 150  # teacher forcing decays over all epochs: from half
@@ -550,12 +571,13 @@ def test_cli_train_and_info(tmp_path):
     res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--epochs", "1",
                               "--batch-size", "8", "--out", str(out), "--json", "--sigma2", "0.0025",
                               "--recon-weight", "2", "--energy-weight", "1.5", "--free-energy-weight", "0.5",
-                              "--free-from", "3"])
+                              "--free-from", "3", "--mirror"])
     assert res.exit_code == 0, res.output
     saved = torch.load(out, weights_only=True)
     config = saved["config"]
     assert config["sigma2"] == 0.0025 and config["recon_weight"] == 2.0 and config["energy_weight"] == 1.5
     assert config["free_energy_weight"] == 0.5 and saved["train_config"]["free_from"] == 3
+    assert saved["train_config"]["mirror"] is True
     res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--free-energy-weight", "-1"])
     assert res.exit_code == 2 and res.stderr == "error: --free-energy-weight must not be negative, got -1.0\n"
     res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--height-weight", "-1"])

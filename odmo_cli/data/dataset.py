@@ -1,4 +1,5 @@
-"""The torch Dataset over a ClipSet, with the supplement §4 clip rules, its samplers and the split.
+"""The torch Dataset over a ClipSet, with the supplement §4 clip rules, its samplers, the split and
+the left-right mirroring that training may augment with.
 
 Every clip is cropped to the dataset's length T at a random start, padded with its last frame
 when shorter, then shifted so that the first frame's root is at the origin. Randomness comes
@@ -59,6 +60,40 @@ class MotionDataset(torch.utils.data.Dataset):
             items = [(torch.from_numpy(crop_pad_shift(self.clips.motions[int(index[r])], self.length, starts[r])),
                       int(self.clips.labels[int(index[r])])) for r in rows]
         return torch.stack([m for m, _ in items]), torch.tensor([c for _, c in items], dtype=torch.long)
+
+
+def mirror_map(joint_names) -> list[int]:
+    """Joint permutation swapping left_*/right_* (or *_a/*_b) partners; unpaired joints stay."""
+    names = list(joint_names)
+    swaps = (("left_", "right_"), ("right_", "left_"))
+    perm = []
+    for j, name in enumerate(names):
+        partner = name
+        for a, b in swaps:
+            if name.startswith(a):
+                partner = b + name[len(a):]
+        for a, b in (("_a", "_b"), ("_b", "_a")):
+            if name.endswith(a):
+                partner = name[:-len(a)] + b
+        perm.append(names.index(partner) if partner in names else j)
+    return perm
+
+
+def mirror(motions, perm: list[int], axis: int):
+    """(N, T, J, 3) motions, a numpy array or a tensor, mirrored: partner joints swapped, `axis`
+    negated. A ground axis that runs from side to side (x on HumanAct12) keeps the clips' facing."""
+    sign = np.ones(3, dtype=np.float32)
+    sign[axis] = -1.0
+    out = motions[:, :, perm]
+    return out * (torch.from_numpy(sign).to(out) if isinstance(out, torch.Tensor) else sign)
+
+
+def mirror_half(motions: np.ndarray, perm: list[int], axis: int, rng: np.random.Generator) -> np.ndarray:
+    """Mirror a random half of (N, T, J, 3) motions: swap partner joints, negate `axis`."""
+    flip = rng.random(len(motions)) < 0.5
+    out = motions.copy()
+    out[flip] = mirror(motions[flip], perm, axis)
+    return out
 
 
 def stratified_indices(labels: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:

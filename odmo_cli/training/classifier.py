@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from odmo_cli.data.dataset import crop_pad_shift, random_start
+from odmo_cli.data.dataset import crop_pad_shift, mirror_half, mirror_map, random_start
 from odmo_cli.data.readers import ClipSet
 from odmo_cli.errors import UserError
 from odmo_cli.models.classifier import ClassifierConfig, MotionClassifier, config_for
@@ -121,32 +121,6 @@ def _resample(motion: np.ndarray, rate: float) -> np.ndarray:
     i1 = np.minimum(i0 + 1, len(motion) - 1)
     w = (t - i0).astype(np.float32)[:, None, None]
     return motion[i0] * (1 - w) + motion[i1] * w
-
-
-def mirror_map(joint_names) -> list[int]:
-    """Joint permutation swapping left_*/right_* (or *_a/*_b) partners; unpaired joints stay."""
-    names = list(joint_names)
-    swaps = (("left_", "right_"), ("right_", "left_"))
-    perm = []
-    for j, name in enumerate(names):
-        partner = name
-        for a, b in swaps:
-            if name.startswith(a):
-                partner = b + name[len(a):]
-        for a, b in (("_a", "_b"), ("_b", "_a")):
-            if name.endswith(a):
-                partner = name[:-len(a)] + b
-        perm.append(names.index(partner) if partner in names else j)
-    return perm
-
-
-def mirror_half(motions: np.ndarray, perm: list[int], axis: int, rng: np.random.Generator) -> np.ndarray:
-    """Mirror a random half of (N, T, J, 3) motions: swap partner joints, negate `axis`."""
-    flip = rng.random(len(motions)) < 0.5
-    out = motions.copy()
-    out[flip] = motions[flip][:, :, perm]
-    out[flip, ..., axis] *= -1
-    return out
 
 
 def rotate_up(motions: np.ndarray, up_index: int, max_degrees: float, rng: np.random.Generator) -> np.ndarray:

@@ -3,7 +3,8 @@ Adam with gradient clipping, teacher forcing decayed linearly, and at the end th
 the mode mixtures and a report of what the model learnt.
 
 An epoch draws `pairs_per_epoch` pairs (default: one per training clip), half of them of one
-action (`same_class_fraction`, as the authors' release), each clip a random T-frame crop. On
+action (`same_class_fraction`, as the authors' release), each clip a random T-frame crop, mirrored
+half the time with `mirror` (off by default, as in the paper and the release). On
 several processes every rank draws each step's pairs, crops, teacher-forcing coins and code noise
 for the whole batch and computes its share of the pairs (training/distributed.py).
 """
@@ -18,7 +19,7 @@ import torch
 
 from odmo_cli import metrics
 from odmo_cli.checkpoint import dataset_description, float_state, load_checkpoint
-from odmo_cli.data.dataset import MotionDataset, crops_from_start, pair_indices
+from odmo_cli.data.dataset import MotionDataset, crops_from_start, mirror, mirror_map, pair_indices
 from odmo_cli.data.readers import ClipSet
 from odmo_cli.device import model_device
 from odmo_cli.errors import UserError
@@ -48,6 +49,9 @@ class TrainConfig(LoopConfig):
     free_from: int = -1
     pairs_per_epoch: int = 0  # 0: as many pairs as training clips
     same_class_fraction: float = 0.5  # the release pairs each clip with its class half the time; < 0: independent pairs
+    # augmentation (neither the paper's nor the release's): each clip of a batch mirrored with
+    # probability 1/2, left and right swapped across the first ground axis (data.dataset.mirror)
+    mirror: bool = False
     grad_clip: float = 1.0  # as in the authors' release
     # the networks this run trains, comma-separated (PARTS); "": all. The others keep their weights
     # (a stage that should change what sampling draws of one part and leave the rest as they are)
@@ -110,6 +114,7 @@ class ODMOTrainer(Trainer):
 
     def setup(self) -> None:
         self.data = MotionDataset(self.clips, self.cfg.length, rng=self.np_rng)
+        self.mirror_perm = mirror_map(self.clips.manifest.skeleton.joint_names)
 
     def train_epoch(self) -> dict[str, float]:
         tc, model, opt, dev, gen = self.tc, self.model, self.optimizers["optimizer"], self.device, self.torch_gen
@@ -130,6 +135,11 @@ class ODMOTrainer(Trainer):
             rows, weight = self.group.share(n)
             mine = np.r_[np.arange(n)[rows], n + np.arange(n)[rows]] if self.group.distributed else None
             motion, lab = self.data.batch(both, mine)  # (2B, T, J, 3), or this rank's pairs
+            if tc.mirror:  # coins for the whole batch, in one process's order, then this rank's rows
+                flip = self.np_rng.random(2 * n) < 0.5
+                flip = torch.from_numpy(flip if mine is None else flip[mine])[:, None, None, None]
+                axis = self.clips.manifest.skeleton.ground_axes[0]
+                motion = torch.where(flip, mirror(motion, self.mirror_perm, axis), motion)
             motion, lab = motion.to(dev), lab.to(dev)
             # drawn for the whole batch, in the order of one process, then this rank's rows taken
             shape = (2 * n, self.cfg.length) if tc.tf_per == "clip" else (self.cfg.length,)
