@@ -436,7 +436,8 @@ def test_mirror_feeds_each_crop_or_its_mirror_half_the_time(demo_clips, tmp_path
     them), each as it is or mirrored, about half of them mirrored."""
     seen = []
     terms = odmo_training.odmo_terms
-    monkeypatch.setattr(odmo_training, "odmo_terms", lambda out, motion, *a: seen.append(motion) or terms(out, motion, *a))
+    monkeypatch.setattr(odmo_training, "odmo_terms",
+                        lambda out, motion, *a: seen.append(motion) or terms(out, motion, *a))
     for flag in (False, True):
         torch.manual_seed(0)
         cfg = model_config_for(demo_clips, {"motion_hidden": 8, "traj_hidden": 8})
@@ -448,6 +449,26 @@ def test_mirror_feeds_each_crop_or_its_mirror_half_the_time(demo_clips, tmp_path
     was_mirrored = (flipped == mirrored).flatten(1).all(1)
     assert bool((same | was_mirrored).all()) and not bool((same & was_mirrored).any())
     assert 0.25 < was_mirrored.float().mean() < 0.75, was_mirrored.float().mean()
+
+
+def test_weight_decay_trains_with_adamw_and_pulls_the_weights_in(demo_clips, tmp_path):
+    def run(weight_decay):
+        torch.manual_seed(0)
+        cfg = model_config_for(demo_clips, {"motion_hidden": 8, "traj_hidden": 8})
+        tc = small_tc(epochs=2, weight_decay=weight_decay)
+        trainer = ODMOTrainer(demo_clips, cfg, tc, tmp_path / f"{weight_decay}.pt")
+        trainer.run()
+        return trainer
+
+    plain, decayed = run(0.0), run(50.0)
+    assert type(plain.optimizers["optimizer"]) is torch.optim.Adam  # the default: the paper's and the release's
+    opt = decayed.optimizers["optimizer"]
+    assert type(opt) is torch.optim.AdamW and opt.param_groups[0]["weight_decay"] == 50.0
+    def norm(trainer):
+        return sum(float(p.detach().norm() ** 2) for p in trainer.model.parameters())
+    assert norm(decayed) < 0.95 * norm(plain)
+    with pytest.raises(UserError, match="--weight-decay must not be negative"):
+        TrainConfig(weight_decay=-1.0)
 
 
 def test_free_running_term_starts_once_teacher_forcing_has_decayed():
@@ -571,13 +592,15 @@ def test_cli_train_and_info(tmp_path):
     res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--epochs", "1",
                               "--batch-size", "8", "--out", str(out), "--json", "--sigma2", "0.0025",
                               "--recon-weight", "2", "--energy-weight", "1.5", "--free-energy-weight", "0.5",
-                              "--free-from", "3", "--mirror"])
+                              "--free-from", "3", "--mirror", "--weight-decay", "0.5"])
     assert res.exit_code == 0, res.output
     saved = torch.load(out, weights_only=True)
     config = saved["config"]
     assert config["sigma2"] == 0.0025 and config["recon_weight"] == 2.0 and config["energy_weight"] == 1.5
     assert config["free_energy_weight"] == 0.5 and saved["train_config"]["free_from"] == 3
-    assert saved["train_config"]["mirror"] is True
+    assert saved["train_config"]["mirror"] is True and saved["train_config"]["weight_decay"] == 0.5
+    res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--weight-decay", "-1"])
+    assert res.exit_code == 2 and res.stderr == "error: --weight-decay must not be negative, got -1.0\n"
     res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--free-energy-weight", "-1"])
     assert res.exit_code == 2 and res.stderr == "error: --free-energy-weight must not be negative, got -1.0\n"
     res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--height-weight", "-1"])

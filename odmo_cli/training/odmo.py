@@ -53,6 +53,7 @@ class TrainConfig(LoopConfig):
     # probability 1/2, left and right swapped across the first ground axis (data.dataset.mirror)
     mirror: bool = False
     grad_clip: float = 1.0  # as in the authors' release
+    weight_decay: float = 0.0  # > 0: AdamW's decoupled weight decay (neither the paper's nor the release's)
     # the networks this run trains, comma-separated (PARTS); "": all. The others keep their weights
     # (a stage that should change what sampling draws of one part and leave the rest as they are)
     train_parts: str = ""
@@ -72,6 +73,8 @@ class TrainConfig(LoopConfig):
             raise UserError(f"--free-from must be an epoch (or -1: once teacher forcing has decayed), got {self.free_from}")
         if self.tf_per not in ("step", "clip"):
             raise UserError(f"teacher forcing per step or clip, got {self.tf_per!r}")
+        if self.weight_decay < 0:
+            raise UserError(f"--weight-decay must not be negative, got {self.weight_decay}")
         if self.same_class_fraction > 1:
             raise UserError(f"--same-class-fraction must be in [0, 1], got {self.same_class_fraction}")
         super().__post_init__()
@@ -110,6 +113,8 @@ class ODMOTrainer(Trainer):
         for name in PARTS:  # frozen parts get no gradients (and no Adam state)
             getattr(self.model, name).requires_grad_(name in trained)
         params = [p for p in self.model.parameters() if p.requires_grad]
+        if self.tc.weight_decay:
+            return {"optimizer": torch.optim.AdamW(params, lr=self.tc.lr, weight_decay=self.tc.weight_decay)}
         return {"optimizer": torch.optim.Adam(params, lr=self.tc.lr)}
 
     def setup(self) -> None:
