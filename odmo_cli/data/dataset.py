@@ -88,12 +88,16 @@ def mirror(motions, perm: list[int], axis: int):
     return out * (torch.from_numpy(sign).to(out) if isinstance(out, torch.Tensor) else sign)
 
 
-def mirror_half(motions: np.ndarray, perm: list[int], axis: int, rng: np.random.Generator) -> np.ndarray:
-    """Mirror a random half of (N, T, J, 3) motions: swap partner joints, negate `axis`."""
-    flip = rng.random(len(motions)) < 0.5
-    out = motions.copy()
+def mirror_rows(motions, flip: np.ndarray, perm: list[int], axis: int):
+    """A copy of (N, T, J, 3) motions, an array or a tensor, with the rows where `flip` (N,) is true mirrored."""
+    out = motions.clone() if isinstance(motions, torch.Tensor) else motions.copy()
     out[flip] = mirror(motions[flip], perm, axis)
     return out
+
+
+def mirror_half(motions: np.ndarray, perm: list[int], axis: int, rng: np.random.Generator) -> np.ndarray:
+    """Mirror a random half of (N, T, J, 3) motions: swap partner joints, negate `axis`."""
+    return mirror_rows(motions, rng.random(len(motions)) < 0.5, perm, axis)
 
 
 def stratified_indices(labels: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:

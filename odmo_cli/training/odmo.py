@@ -19,7 +19,7 @@ import torch
 
 from odmo_cli import metrics
 from odmo_cli.checkpoint import dataset_description, float_state, load_checkpoint
-from odmo_cli.data.dataset import MotionDataset, crops_from_start, mirror, mirror_map, pair_indices
+from odmo_cli.data.dataset import MotionDataset, crops_from_start, mirror_map, mirror_rows, pair_indices
 from odmo_cli.data.readers import ClipSet
 from odmo_cli.device import model_device
 from odmo_cli.errors import UserError
@@ -119,7 +119,8 @@ class ODMOTrainer(Trainer):
 
     def setup(self) -> None:
         self.data = MotionDataset(self.clips, self.cfg.length, rng=self.np_rng)
-        self.mirror_perm = mirror_map(self.clips.manifest.skeleton.joint_names)
+        skeleton = self.clips.manifest.skeleton
+        self.mirror_perm, self.mirror_axis = mirror_map(skeleton.joint_names), skeleton.ground_axes[0]
 
     def train_epoch(self) -> dict[str, float]:
         tc, model, opt, dev, gen = self.tc, self.model, self.optimizers["optimizer"], self.device, self.torch_gen
@@ -142,9 +143,7 @@ class ODMOTrainer(Trainer):
             motion, lab = self.data.batch(both, mine)  # (2B, T, J, 3), or this rank's pairs
             if tc.mirror:  # coins for the whole batch, in one process's order, then this rank's rows
                 flip = self.np_rng.random(2 * n) < 0.5
-                flip = torch.from_numpy(flip if mine is None else flip[mine])[:, None, None, None]
-                axis = self.clips.manifest.skeleton.ground_axes[0]
-                motion = torch.where(flip, mirror(motion, self.mirror_perm, axis), motion)
+                motion = mirror_rows(motion, flip if mine is None else flip[mine], self.mirror_perm, self.mirror_axis)
             motion, lab = motion.to(dev), lab.to(dev)
             # drawn for the whole batch, in the order of one process, then this rank's rows taken
             shape = (2 * n, self.cfg.length) if tc.tf_per == "clip" else (self.cfg.length,)
