@@ -118,7 +118,7 @@ def test_shares_cover_the_batch_once_and_weights_average_to_one():
 # 19 pairs a epoch in batches of 8: the last batch of 3 pairs splits 2 + 1 (unequal shares); no
 # clipping, which would hide a gradient scaled by a wrong factor; mirrored clips, whose coins each
 # rank draws for the whole batch before taking its rows
-ODMO_KW = dict(pairs_per_epoch=19, batch_size=8, grad_clip=0.0, mirror=True)
+ODMO_KW = dict(pairs_per_epoch=19, batch_size=8, grad_clip=0.0, mirror=True, decoder_dropout=0.3)
 
 
 def test_two_gloo_processes_train_odmo_as_one_process(tmp_path, monkeypatch):

@@ -471,6 +471,42 @@ def test_weight_decay_trains_with_adamw_and_pulls_the_weights_in(demo_clips, tmp
         TrainConfig(weight_decay=-1.0)
 
 
+def test_decoder_dropout_masks_what_the_cells_pass_on(demo_clips):
+    """keep of ones is no dropout; a dropped second cell leaves the output layer its bias alone."""
+    torch.manual_seed(0)
+    cfg = model_config_for(demo_clips, {"motion_hidden": 8, "traj_hidden": 8})
+    gen = ODMO(cfg).motion
+    traj, cond = torch.randn(3, 60, 3), torch.randn(3, cfg.n_classes * cfg.latent_dim)
+    plain = gen(traj, cond)
+    assert torch.equal(gen(traj, cond, keep=torch.ones(2, 3, 8)), plain)
+    keep = torch.ones(2, 3, 8)
+    keep[1, 0] = 0  # clip 0: every unit of the second cell dropped
+    out = gen(traj, cond, keep=keep)
+    assert torch.allclose(out[0], gen.out.bias.expand(60, -1)) and torch.equal(out[1:], plain[1:])
+    keep = torch.ones(2, 3, 8)
+    keep[0, 2, :4] = 0  # clip 2: half the first cell's outputs dropped, through every later step
+    out = gen(traj, cond, keep=keep)
+    assert torch.equal(out[:2], plain[:2]) and not torch.allclose(out[2], plain[2])
+
+
+def test_decoder_dropout_draws_fixed_units_per_clip_at_its_rate(demo_clips, tmp_path, monkeypatch):
+    seen = []
+    net = ODMO.forward
+    monkeypatch.setattr(ODMO, "forward", lambda self, *a, keep=None, **kw: seen.append(keep) or net(self, *a, keep=keep, **kw))
+    torch.manual_seed(0)
+    cfg = model_config_for(demo_clips, {"motion_hidden": 64, "traj_hidden": 8})
+    ODMOTrainer(demo_clips, cfg, small_tc(epochs=1, batch_size=1024), tmp_path / "a.pt").run()
+    assert seen == [None]  # off by default: nothing drawn, the paper's decoder
+    ODMOTrainer(demo_clips, cfg, small_tc(epochs=1, batch_size=1024, decoder_dropout=0.25), tmp_path / "b.pt").run()
+    keep = seen[1]  # (2, 2B, H): one multiplier per cell, clip and unit
+    assert keep.shape == (2, 2 * len(demo_clips.labels), 64)  # every clip in one batch (no validation split)
+    assert keep.unique().tolist() == pytest.approx([0.0, 1 / 0.75])
+    assert 0.2 < float((keep == 0).float().mean()) < 0.3
+    for bad in (-0.1, 1.0):
+        with pytest.raises(UserError, match=r"--decoder-dropout must be in \[0, 1\)"):
+            TrainConfig(decoder_dropout=bad)
+
+
 def test_free_running_term_starts_once_teacher_forcing_has_decayed():
     assert TrainConfig(epochs=1000, tf_epochs=500).free_start() == 500
     assert TrainConfig(epochs=300).free_start() == 150  # teacher forcing decays over all epochs: from half
@@ -592,13 +628,16 @@ def test_cli_train_and_info(tmp_path):
     res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--epochs", "1",
                               "--batch-size", "8", "--out", str(out), "--json", "--sigma2", "0.0025",
                               "--recon-weight", "2", "--energy-weight", "1.5", "--free-energy-weight", "0.5",
-                              "--free-from", "3", "--mirror", "--weight-decay", "0.5"])
+                              "--free-from", "3", "--mirror", "--weight-decay", "0.5", "--decoder-dropout", "0.1"])
     assert res.exit_code == 0, res.output
     saved = torch.load(out, weights_only=True)
     config = saved["config"]
     assert config["sigma2"] == 0.0025 and config["recon_weight"] == 2.0 and config["energy_weight"] == 1.5
     assert config["free_energy_weight"] == 0.5 and saved["train_config"]["free_from"] == 3
     assert saved["train_config"]["mirror"] is True and saved["train_config"]["weight_decay"] == 0.5
+    assert saved["train_config"]["decoder_dropout"] == 0.1
+    res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--decoder-dropout", "1"])
+    assert res.exit_code == 2 and res.stderr == "error: --decoder-dropout must be in [0, 1), got 1.0\n"
     res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--weight-decay", "-1"])
     assert res.exit_code == 2 and res.stderr == "error: --weight-decay must not be negative, got -1.0\n"
     res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--free-energy-weight", "-1"])

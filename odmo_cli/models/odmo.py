@@ -204,13 +204,15 @@ class MotionGenerator(nn.Module):
         self.out = nn.Linear(h, p)
 
     def forward(self, trajectory: torch.Tensor, cond: torch.Tensor, target: torch.Tensor | None = None,
-                teacher: torch.Tensor | None = None) -> torch.Tensor:
+                teacher: torch.Tensor | None = None, keep: torch.Tensor | None = None) -> torch.Tensor:
         """trajectory (B, T, 3), cond (B, C*D) -> poses (B, T, J*3).
 
         teacher (T,) bool: at steps where it is True the previous pose fed in is target's (B, T, J*3);
         (B, T) bool: the same choice made for each clip and step.
+        keep (2, B, H): multipliers of the two cells' outputs, the same at every step (variational
+        dropout: 0 for a dropped unit, 1 / (1 - p) for a kept one); None keeps every unit as it is.
         """
-        return self.unroll(self.prepare(trajectory, cond), target, teacher)
+        return self.unroll(self.prepare(trajectory, cond), target, teacher, keep)
 
     def prepare(self, trajectory: torch.Tensor, cond: torch.Tensor) -> tuple:
         """What every unroll of one (trajectory, cond) shares: the trajectory encoder's final state
@@ -226,8 +228,9 @@ class MotionGenerator(nn.Module):
         return ((h[0], c[0]), (h[1], c[1])), fixed
 
     def unroll(self, prepared: tuple, target: torch.Tensor | None = None,
-               teacher: torch.Tensor | None = None) -> torch.Tensor:
-        """The autoregressive pose decoder from `prepare`'s output -> poses (B, T, J*3); teacher as in forward."""
+               teacher: torch.Tensor | None = None, keep: torch.Tensor | None = None) -> torch.Tensor:
+        """The autoregressive pose decoder from `prepare`'s output -> poses (B, T, J*3); teacher and
+        keep as in forward."""
         (s0, s1), fixed = prepared
         state = [s0, s1]
         B, T, p = len(fixed[0]), len(fixed), self.cfg.n_joints * 3
@@ -247,8 +250,9 @@ class MotionGenerator(nn.Module):
             else:
                 x = F.linear(prev, w_prev) + fixed[t]
             state[0] = self.cell0(self.act(x), state[0])
-            state[1] = self.cell1(state[0][0], state[1])
-            prev = self.out(state[1][0])  # (B, P)
+            # dropout masks what each cell passes on, not its own recurrent state
+            state[1] = self.cell1(state[0][0] if keep is None else state[0][0] * keep[0], state[1])
+            prev = self.out(state[1][0] if keep is None else state[1][0] * keep[1])  # (B, P)
             outputs.append(prev)
         return torch.stack(outputs, dim=1)  # (B, T, P)
 
@@ -289,36 +293,38 @@ class ODMO(nn.Module):
         return trajectory, self.motion.prepare(trajectory, cond)
 
     def _poses(self, prepared: tuple, trajectory: torch.Tensor, target: torch.Tensor | None = None,
-               teacher: torch.Tensor | None = None) -> torch.Tensor:
-        """The pose decoder's motion (B, T, J, 3) in the dataset's frame; teacher-forced from target."""
+               teacher: torch.Tensor | None = None, keep: torch.Tensor | None = None) -> torch.Tensor:
+        """The pose decoder's motion (B, T, J, 3) in the dataset's frame; teacher-forced from target,
+        its units dropped as `keep` says (MotionGenerator.forward)."""
         origin = trajectory[:, :, None] if self.cfg.pose_frame == "path" else None  # (B, T, 1, 3)
         if target is not None and origin is not None:
             # the previous pose as the decoder would have drawn it; the path is not detached, here or
             # in the output, so the pose losses reach the trajectory generator through both
             target = target - origin
         flat_target = target.flatten(2) if target is not None else None
-        motion = self.motion.unroll(prepared, flat_target, teacher)
+        motion = self.motion.unroll(prepared, flat_target, teacher, keep)
         motion = motion.view(*motion.shape[:2], self.cfg.n_joints, 3)
         return motion if origin is None else motion + origin
 
     def forward(self, motion: torch.Tensor, labels: torch.Tensor, generator: torch.Generator | None = None,
                 teacher: torch.Tensor | None = None, eps: torch.Tensor | None = None,
-                free: bool = False) -> dict[str, torch.Tensor]:
+                free: bool = False, keep: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """Reconstruct a batch: encode its LMP, sample z (noise `eps` (B, D), else drawn from
         `generator`), decode with the real end point; with `free`, also without teacher forcing
-        ("free_motion")."""
+        ("free_motion"). keep (2, B, H): the pose decoder's dropout (MotionGenerator.forward), the
+        same units in both decodes."""
         mu, logvar = self.encode(motion)
         if eps is None:
             eps = torch.randn(mu.shape, generator=generator, dtype=mu.dtype, device=mu.device)
         z = mu + eps * torch.exp(0.5 * logvar)
         trajectory, prepared = self._plan(z, labels, motion[:, -1, 0])
         out = {"mu": mu, "logvar": logvar, "z": z, "trajectory": trajectory,
-               "motion": self._poses(prepared, trajectory, motion, teacher)}
+               "motion": self._poses(prepared, trajectory, motion, teacher, keep)}
         if free:  # the same trajectory, decoded again without teacher forcing
             forced = teacher is not None and bool(teacher.any())
             # with no step forced the first decode is already the free-running one: the same
             # values and gradients, at half the cost of decoding it twice
-            out["free_motion"] = self._poses(prepared, trajectory) if forced else out["motion"]
+            out["free_motion"] = self._poses(prepared, trajectory, keep=keep) if forced else out["motion"]
         return out
 
 

@@ -54,6 +54,9 @@ class TrainConfig(LoopConfig):
     mirror: bool = False
     grad_clip: float = 1.0  # as in the authors' release
     weight_decay: float = 0.0  # > 0: AdamW's decoupled weight decay (neither the paper's nor the release's)
+    # > 0: each of the pose decoder's hidden units dropped with this probability in what its two cells
+    # pass on, the same units at every step of a clip (variational dropout; neither the paper's nor the release's)
+    decoder_dropout: float = 0.0
     # the networks this run trains, comma-separated (PARTS); "": all. The others keep their weights
     # (a stage that should change what sampling draws of one part and leave the rest as they are)
     train_parts: str = ""
@@ -75,6 +78,8 @@ class TrainConfig(LoopConfig):
             raise UserError(f"teacher forcing per step or clip, got {self.tf_per!r}")
         if self.weight_decay < 0:
             raise UserError(f"--weight-decay must not be negative, got {self.weight_decay}")
+        if not 0 <= self.decoder_dropout < 1:
+            raise UserError(f"--decoder-dropout must be in [0, 1), got {self.decoder_dropout}")
         if self.same_class_fraction > 1:
             raise UserError(f"--same-class-fraction must be in [0, 1], got {self.same_class_fraction}")
         super().__post_init__()
@@ -149,10 +154,12 @@ class ODMOTrainer(Trainer):
             shape = (2 * n, self.cfg.length) if tc.tf_per == "clip" else (self.cfg.length,)
             teacher = torch.rand(shape, generator=gen, device=dev) < teacher_rate
             eps = torch.randn((2 * n, self.cfg.latent_dim), generator=gen, device=dev)
+            keep = self.dropout_masks(2 * n, gen) if tc.decoder_dropout else None  # (2, 2B, H)
             if mine is not None:
                 take = torch.from_numpy(mine).to(dev)
                 eps, teacher = eps[take], teacher[take] if tc.tf_per == "clip" else teacher
-            out = self.net(motion, lab, teacher=teacher, eps=eps, free=free)
+                keep = None if keep is None else keep[:, take]
+            out = self.net(motion, lab, teacher=teacher, eps=eps, free=free, keep=keep)
             terms = odmo_terms(out, motion, lab, self.cfg)
             loss = total_loss(terms, self.cfg)
             self.check_finite(loss)
@@ -167,6 +174,12 @@ class ODMOTrainer(Trainer):
             sums["total"] = sums.get("total", 0.0) + float(loss.detach()) * own
         sums = self.group.sum(sums)
         return {"clips": 2 * n_pairs, "teacher": teacher_rate, **{k: v / n_pairs for k, v in sums.items()}}
+
+    def dropout_masks(self, n: int, gen: torch.Generator) -> torch.Tensor:
+        """The pose decoder's dropout for n clips: (2, n, H) multipliers, 0 or 1 / (1 - p)."""
+        p = self.tc.decoder_dropout
+        kept = torch.rand((2, n, self.cfg.motion_hidden), generator=gen, device=self.device) >= p
+        return kept.float() / (1 - p)
 
     def start_from(self, ckpt: dict, source: str) -> None:
         """Start from another finished ODMO checkpoint's weights (a fine-tuning stage: this run's
