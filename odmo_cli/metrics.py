@@ -521,6 +521,32 @@ def mean_pose_error(motions: ArrayLike, labels: ArrayLike) -> float:
     return float(_norm3(mean - body).mean())
 
 
+def retrieval_errors(motions: ArrayLike, labels: ArrayLike, codes: ArrayLike, bank_motions: ArrayLike,
+                     bank_labels: ArrayLike, bank_codes: ArrayLike) -> dict[str, float]:
+    """What a decoder of new clips is up against when it draws them from a bank of known clips.
+
+    For each motion (N, T, J, 3) of an action the bank (M, T, J, 3) holds, the body error about the root
+    (per clip, as body_error) against the bank motion of its action whose code (D,) is nearest
+    ("nearest_code": retrieval, what a lookup by the code gives) and against the bank motion of its
+    action that fits it best ("best_clip": an oracle that looks at the answer). Means over the motions
+    whose action has bank clips; NaN when none has."""
+    m, b = _as_motions(motions), _as_motions(bank_motions, "bank_motions")
+    y, by = _as_labels(labels, m.shape[0]), _as_labels(bank_labels, b.shape[0], "bank_labels")
+    z, bz = np.asarray(codes, dtype=np.float64), np.asarray(bank_codes, dtype=np.float64)
+    body, bank_body = m - m[:, :, :1], b - b[:, :, :1]
+    nearest, best = [], []
+    for i in range(len(m)):
+        own = np.flatnonzero(by == y[i])
+        if not len(own):
+            continue
+        errs = _norm3(bank_body[own] - body[i]).mean(axis=(1, 2))  # (K,): against each bank clip of the action
+        nearest.append(errs[np.argmin(((bz[own] - z[i]) ** 2).sum(axis=1))])
+        best.append(errs.min())
+    if not nearest:
+        return {"nearest_code": float("nan"), "best_clip": float("nan")}
+    return {"nearest_code": float(np.mean(nearest)), "best_clip": float(np.mean(best))}
+
+
 def damping_ratios(gen_motions: ArrayLike, gen_labels: ArrayLike, real_motions: ArrayLike,
                    real_labels: ArrayLike, smooth: int = 3) -> dict:
     """Generated over real body speed and amplitude, per category and their mean over categories.

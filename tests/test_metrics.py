@@ -390,6 +390,22 @@ def test_body_error_counts_the_pose_not_the_place():
         metrics.body_error(real[:2], real)
 
 
+def test_retrieval_errors_take_the_nearest_code_and_the_best_clip_of_the_same_action():
+    def clip(x, root=0.0):  # (1, 2, 3): a root and one joint x to its side; body error |dx| / 2
+        return [[[root, 0.0, 0.0], [root + x, 0.0, 0.0]]]
+
+    bank = np.array([clip(0.0), clip(1.0), clip(3.0), clip(5.0)])
+    bank_labels, bank_codes = [0, 0, 0, 1], [[0.0], [10.0], [20.0], [0.0]]
+    # action 0: its nearest code is the x = 0 clip (error 1.25), its best clip x = 3 (0.25); action 1:
+    # one clip (0.5 both ways), the motion's place does not count; action 2: no bank clip, left out
+    motions = np.array([clip(2.5), clip(4.0, root=7.0), clip(9.0)])
+    got = metrics.retrieval_errors(motions, [0, 1, 2], [[0.1], [7.0], [0.0]], bank, bank_labels, bank_codes)
+    assert got["nearest_code"] == pytest.approx((1.25 + 0.5) / 2)
+    assert got["best_clip"] == pytest.approx((0.25 + 0.5) / 2)
+    none = metrics.retrieval_errors(motions[2:], [2], [[0.0]], bank, bank_labels, bank_codes)
+    assert np.isnan(none["nearest_code"]) and np.isnan(none["best_clip"])
+
+
 def test_mean_pose_error_is_the_spread_about_each_actions_mean_body():
     m = np.zeros((3, 1, 2, 3))  # root at 0, one joint
     m[0, 0, 1] = [1, 0, 0]

@@ -429,6 +429,16 @@ def test_checkpoint_is_safe_and_holds_the_latent_bank(demo_clips, tmp_path):
     real, labels = crops_from_start(demo_clips, ckpt["split"]["train"].numpy(), 60)
     assert result.report["train_body_mean_pose"] == pytest.approx(
         metrics.mean_pose_error(real.numpy(), labels.numpy()), rel=1e-5)
+    # the held-out bodies against the training clips' own motions: a lookup by code, and the best clip
+    val = ckpt["split"]["val"].numpy()
+    held, held_labels = crops_from_start(demo_clips, val, 60)
+    with torch.no_grad():
+        held_codes = model.encode(held)[0]
+    retrieved = metrics.retrieval_errors(held.numpy(), held_labels.numpy(), held_codes.numpy(), real.numpy(),
+                                         labels.numpy(), bank["codes"].numpy())
+    assert result.report["held_out_body_nearest_code"] == pytest.approx(retrieved["nearest_code"], rel=1e-4)
+    assert 0 < result.report["held_out_body_best_clip"] == pytest.approx(retrieved["best_clip"], rel=1e-4)
+    assert result.report["held_out_body_best_clip"] <= result.report["held_out_body_nearest_code"]
 
 
 def test_mirror_feeds_each_crop_or_its_mirror_half_the_time(demo_clips, tmp_path, monkeypatch):

@@ -181,6 +181,9 @@ def train_odmo_cmd(
     console.print(f"body about the root: error {r['held_out_body']:.3f} (each clip's action-mean body: "
                   f"{r['held_out_body_mean_pose']:.3f}); on the training clips {r['train_body']:.3f} "
                   f"({r['train_body_mean_pose']:.3f})")
+    if "held_out_body_nearest_code" in r:  # absent without a validation split
+        console.print(f"the held-out bodies against the training clips' own: the one with the nearest code "
+                      f"{r['held_out_body_nearest_code']:.3f}, the best one {r['held_out_body_best_clip']:.3f}")
     console.print(f"noise ceiling (best squared-error output under the posterior noise): speed "
                   f"{r['ceiling_speed']:.2f}, amplitude {r['ceiling_amplitude']:.2f}, body error {r['ceiling_body']:.3f}")
     console.print(f"latent space: centroid distance {r['centroid_distance']:.2f} (min {r['min_centroid_distance']:.2f}, "

@@ -284,7 +284,9 @@ def finish(trainer: ODMOTrainer) -> dict:
     """Latent bank, mode mixtures, held-out reconstruction and latent separation; written into the checkpoint.
     The same reconstruction of the training clips ("train_"; their first crops) says whether the decoder
     fits the clips it learnt from: a body error there no lower than the action-mean body's is under-fitting,
-    one far under the held-out error over-fitting."""
+    one far under the held-out error over-fitting. The held-out bodies against the training clips' own
+    motions (metrics.retrieval_errors: the one with the nearest code, and the best one) say how much the
+    decoder adds to a lookup, and how far it is from the best that any one training clip fits."""
     model, clips = trainer.model, trainer.clips
     bank = latent_bank(model, clips, trainer.train_idx)
     held = trainer.val_idx if len(trainer.val_idx) else trainer.train_idx
@@ -299,6 +301,12 @@ def finish(trainer: ODMOTrainer) -> dict:
                      held_bank["labels"].numpy(), trainer.cfg.n_classes),
         "alpha": trainer.cfg.alpha,
     }
+    if len(trainer.val_idx):  # the held-out bodies against the training clips' own motions
+        length = trainer.cfg.length
+        retrieved = metrics.retrieval_errors(
+            crops_from_start(clips, held, length)[0].numpy(), held_bank["labels"].numpy(), held_bank["codes"].numpy(),
+            crops_from_start(clips, trainer.train_idx, length)[0].numpy(), bank["labels"].numpy(), bank["codes"].numpy())
+        report.update({f"held_out_body_{k}": v for k, v in retrieved.items()})
     modes = fit_modes(bank, trainer.cfg.n_classes, seed=trainer.tc.seed)
     report["mode_homogeneity"] = mode_homogeneity(clips, trainer.train_idx, bank, modes, trainer.cfg.length)
     trainer.save({"latent_bank": bank, "modes": modes, "report": report})
