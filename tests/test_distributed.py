@@ -116,8 +116,8 @@ def test_shares_cover_the_batch_once_and_weights_average_to_one():
 # -- two processes against one -----------------------------------------------------------------
 
 # 19 pairs a epoch in batches of 8: the last batch of 3 pairs splits 2 + 1 (unequal shares); no
-# clipping, which would hide a gradient scaled by a wrong factor; mirrored clips, whose coins each
-# rank draws for the whole batch before taking its rows
+# clipping, which would hide a gradient scaled by a wrong factor; mirrored clips and dropped decoder
+# units, whose coins and masks each rank draws for the whole batch before taking its rows
 ODMO_KW = dict(pairs_per_epoch=19, batch_size=8, grad_clip=0.0, mirror=True, decoder_dropout=0.3)
 
 
