@@ -461,6 +461,28 @@ def test_mirror_feeds_each_crop_or_its_mirror_half_the_time(demo_clips, tmp_path
     assert 0.25 < was_mirrored.float().mean() < 0.75, was_mirrored.float().mean()
 
 
+def test_first_crops_feed_each_clips_first_frames(demo_clips, tmp_path, monkeypatch):
+    """TrainConfig.crops "first": every crop fed is the first T frames of a clip, the crops the latent
+    bank encodes; the default draws other starts of the clips longer than T."""
+    seen = []
+    terms = odmo_training.odmo_terms
+    monkeypatch.setattr(odmo_training, "odmo_terms",
+                        lambda out, motion, *a: seen.append(motion) or terms(out, motion, *a))
+    from odmo_cli.data.dataset import crops_from_start
+    first, _ = crops_from_start(demo_clips, np.arange(len(demo_clips.labels)), 60)  # (N, T, J, 3)
+    for crops in ("random", "first"):
+        torch.manual_seed(0)
+        cfg = model_config_for(demo_clips, {"motion_hidden": 8, "traj_hidden": 8})
+        ODMOTrainer(demo_clips, cfg, small_tc(epochs=1, batch_size=1024, crops=crops), tmp_path / f"{crops}.pt").run()
+    def is_first(fed):  # (2B,): each fed crop equal to some clip's first crop
+        return (fed[:, None] == first[None]).flatten(2).all(2).any(1)
+    random_fed, first_fed = seen
+    assert bool(is_first(first_fed).all())
+    assert not bool(is_first(random_fed).all())
+    with pytest.raises(UserError, match="--crops must be random or first"):
+        TrainConfig(crops="last")
+
+
 def test_weight_decay_trains_with_adamw_and_pulls_the_weights_in(demo_clips, tmp_path):
     def run(weight_decay):
         torch.manual_seed(0)
@@ -638,14 +660,17 @@ def test_cli_train_and_info(tmp_path):
     res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--epochs", "1",
                               "--batch-size", "8", "--out", str(out), "--json", "--sigma2", "0.0025",
                               "--recon-weight", "2", "--energy-weight", "1.5", "--free-energy-weight", "0.5",
-                              "--free-from", "3", "--mirror", "--weight-decay", "0.5", "--decoder-dropout", "0.1"])
+                              "--free-from", "3", "--mirror", "--weight-decay", "0.5", "--decoder-dropout", "0.1",
+                              "--crops", "first"])
     assert res.exit_code == 0, res.output
     saved = torch.load(out, weights_only=True)
     config = saved["config"]
     assert config["sigma2"] == 0.0025 and config["recon_weight"] == 2.0 and config["energy_weight"] == 1.5
     assert config["free_energy_weight"] == 0.5 and saved["train_config"]["free_from"] == 3
     assert saved["train_config"]["mirror"] is True and saved["train_config"]["weight_decay"] == 0.5
-    assert saved["train_config"]["decoder_dropout"] == 0.1
+    assert saved["train_config"]["decoder_dropout"] == 0.1 and saved["train_config"]["crops"] == "first"
+    res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--crops", "last"])
+    assert res.exit_code == 2 and res.stderr == "error: --crops must be random or first, got 'last'\n"
     res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--decoder-dropout", "1"])
     assert res.exit_code == 2 and res.stderr == "error: --decoder-dropout must be in [0, 1), got 1.0\n"
     res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--weight-decay", "-1"])

@@ -57,6 +57,9 @@ class TrainConfig(LoopConfig):
     # > 0: each of the pose decoder's hidden units dropped with this probability in what its two cells
     # pass on, the same units at every step of a clip (variational dropout; neither the paper's nor the release's)
     decoder_dropout: float = 0.0
+    # which T frames of each training clip a batch holds: "random" (a fresh crop each time, the release's)
+    # or "first" (the first T, the crops the latent bank, the mode mixtures and validation encode)
+    crops: str = "random"
     # the networks this run trains, comma-separated (PARTS); "": all. The others keep their weights
     # (a stage that should change what sampling draws of one part and leave the rest as they are)
     train_parts: str = ""
@@ -78,6 +81,8 @@ class TrainConfig(LoopConfig):
             raise UserError(f"teacher forcing per step or clip, got {self.tf_per!r}")
         if self.weight_decay < 0:
             raise UserError(f"--weight-decay must not be negative, got {self.weight_decay}")
+        if self.crops not in ("random", "first"):
+            raise UserError(f"--crops must be random or first, got {self.crops!r}")
         if not 0 <= self.decoder_dropout < 1:
             raise UserError(f"--decoder-dropout must be in [0, 1), got {self.decoder_dropout}")
         if self.same_class_fraction > 1:
@@ -123,7 +128,7 @@ class ODMOTrainer(Trainer):
         return {"optimizer": torch.optim.Adam(params, lr=self.tc.lr)}
 
     def setup(self) -> None:
-        self.data = MotionDataset(self.clips, self.cfg.length, rng=self.np_rng)
+        self.data = MotionDataset(self.clips, self.cfg.length, rng=self.np_rng, random_crop=self.tc.crops == "random")
         skeleton = self.clips.manifest.skeleton
         self.mirror_perm, self.mirror_axis = mirror_map(skeleton.joint_names), skeleton.ground_axes[0]
 
