@@ -441,18 +441,24 @@ def test_checkpoint_is_safe_and_holds_the_latent_bank(demo_clips, tmp_path):
     assert result.report["held_out_body_best_clip"] <= result.report["held_out_body_nearest_code"]
 
 
-def test_mirror_feeds_each_crop_or_its_mirror_half_the_time(demo_clips, tmp_path, monkeypatch):
-    """TrainConfig.mirror: the epoch's crops are those of a run without it (its coins are drawn after
-    them), each as it is or mirrored, about half of them mirrored."""
+def fed_batches(clips, tmp_path, monkeypatch, *settings: dict) -> list[torch.Tensor]:
+    """The motions (2B, T, J, 3) one epoch of a one-batch run feeds the losses, for each TrainConfig
+    variant in `settings`, each run from the same seeds."""
     seen = []
     terms = odmo_training.odmo_terms
     monkeypatch.setattr(odmo_training, "odmo_terms",
                         lambda out, motion, *a: seen.append(motion) or terms(out, motion, *a))
-    for flag in (False, True):
+    for k, extra in enumerate(settings):
         torch.manual_seed(0)
-        cfg = model_config_for(demo_clips, {"motion_hidden": 8, "traj_hidden": 8})
-        ODMOTrainer(demo_clips, cfg, small_tc(epochs=1, batch_size=1024, mirror=flag), tmp_path / f"{flag}.pt").run()
-    plain, flipped = seen  # (2B, T, J, 3): one batch each
+        cfg = model_config_for(clips, {"motion_hidden": 8, "traj_hidden": 8})
+        ODMOTrainer(clips, cfg, small_tc(epochs=1, batch_size=1024, **extra), tmp_path / f"fed{k}.pt").run()
+    return seen
+
+
+def test_mirror_feeds_each_crop_or_its_mirror_half_the_time(demo_clips, tmp_path, monkeypatch):
+    """TrainConfig.mirror: the epoch's crops are those of a run without it (its coins are drawn after
+    them), each as it is or mirrored, about half of them mirrored."""
+    plain, flipped = fed_batches(demo_clips, tmp_path, monkeypatch, {"mirror": False}, {"mirror": True})
     skeleton = demo_clips.manifest.skeleton
     mirrored = mirror(plain, mirror_map(skeleton.joint_names), skeleton.ground_axes[0])
     same = (flipped == plain).flatten(1).all(1)
@@ -464,19 +470,11 @@ def test_mirror_feeds_each_crop_or_its_mirror_half_the_time(demo_clips, tmp_path
 def test_first_crops_feed_each_clips_first_frames(demo_clips, tmp_path, monkeypatch):
     """TrainConfig.crops "first": every crop fed is the first T frames of a clip, the crops the latent
     bank encodes; the default draws other starts of the clips longer than T."""
-    seen = []
-    terms = odmo_training.odmo_terms
-    monkeypatch.setattr(odmo_training, "odmo_terms",
-                        lambda out, motion, *a: seen.append(motion) or terms(out, motion, *a))
     from odmo_cli.data.dataset import crops_from_start
     first, _ = crops_from_start(demo_clips, np.arange(len(demo_clips.labels)), 60)  # (N, T, J, 3)
-    for crops in ("random", "first"):
-        torch.manual_seed(0)
-        cfg = model_config_for(demo_clips, {"motion_hidden": 8, "traj_hidden": 8})
-        ODMOTrainer(demo_clips, cfg, small_tc(epochs=1, batch_size=1024, crops=crops), tmp_path / f"{crops}.pt").run()
+    random_fed, first_fed = fed_batches(demo_clips, tmp_path, monkeypatch, {"crops": "random"}, {"crops": "first"})
     def is_first(fed):  # (2B,): each fed crop equal to some clip's first crop
         return (fed[:, None] == first[None]).flatten(2).all(2).any(1)
-    random_fed, first_fed = seen
     assert bool(is_first(first_fed).all())
     assert not bool(is_first(random_fed).all())
     with pytest.raises(UserError, match="--crops must be random or first"):
@@ -669,18 +667,17 @@ def test_cli_train_and_info(tmp_path):
     assert config["free_energy_weight"] == 0.5 and saved["train_config"]["free_from"] == 3
     assert saved["train_config"]["mirror"] is True and saved["train_config"]["weight_decay"] == 0.5
     assert saved["train_config"]["decoder_dropout"] == 0.1 and saved["train_config"]["crops"] == "first"
-    res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--crops", "last"])
-    assert res.exit_code == 2 and res.stderr == "error: --crops must be random or first, got 'last'\n"
-    res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--decoder-dropout", "1"])
-    assert res.exit_code == 2 and res.stderr == "error: --decoder-dropout must be in [0, 1), got 1.0\n"
-    res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--weight-decay", "-1"])
-    assert res.exit_code == 2 and res.stderr == "error: --weight-decay must not be negative, got -1.0\n"
-    res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--free-energy-weight", "-1"])
-    assert res.exit_code == 2 and res.stderr == "error: --free-energy-weight must not be negative, got -1.0\n"
-    res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--height-weight", "-1"])
-    assert res.exit_code == 2 and res.stderr == "error: --height-weight must not be negative, got -1.0\n"
-    res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--root", "hips"])
-    assert res.exit_code == 2 and res.stderr == "error: unknown --root 'hips'; valid: trajectory, decoder, ground\n"
+    refused = [  # an option's bad value: one line, exit 2
+        (["--crops", "last"], "--crops must be random or first, got 'last'"),
+        (["--decoder-dropout", "1"], "--decoder-dropout must be in [0, 1), got 1.0"),
+        (["--weight-decay", "-1"], "--weight-decay must not be negative, got -1.0"),
+        (["--free-energy-weight", "-1"], "--free-energy-weight must not be negative, got -1.0"),
+        (["--height-weight", "-1"], "--height-weight must not be negative, got -1.0"),
+        (["--root", "hips"], "unknown --root 'hips'; valid: trajectory, decoder, ground"),
+    ]
+    for args, message in refused:
+        res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), *args])
+        assert res.exit_code == 2 and res.stderr == f"error: {message}\n", args
     # a stage with the height term, read with the ground readout: both stored, the validation reports the height
     staged = tmp_path / "h.pt"
     res = runner.invoke(app, ["train", "--dataset", str(demo_folder("humanact12")), "--init", str(out), "--epochs", "1",
