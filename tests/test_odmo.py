@@ -332,6 +332,32 @@ def test_pose_frame_path_draws_the_body_about_the_generated_path():
     assert result.exit_code == 2 and "keeps its file's" in result.output
 
 
+def test_pose_loss_body_counts_the_roots_path_once():
+    """pose_loss="body": L_mre compares every joint but the root about the root, and the root itself;
+    a path off by d costs d^2 in every joint of the world-frame loss, in the root alone here."""
+    cfg = tiny_config()  # J = 4, T = 8, the vertical axis weighted x5
+    motion = torch.randn(2, cfg.length, cfg.n_joints, 3)
+    about = losses.about_root(motion)
+    assert torch.equal(about[:, :, 0], motion[:, :, 0])
+    assert torch.allclose(about[:, :, 1:] + motion[:, :, :1], motion[:, :, 1:])
+    off = motion + torch.tensor([0.1, 0.0, 0.0])  # the whole body, root included, shifted along x
+    out = {"trajectory": motion[:, :, 0], "motion": off, "mu": torch.zeros(2, 5),
+           "logvar": torch.full((2, 5), math.log(cfg.sigma2))}
+    labels = torch.tensor([0, 0])
+    world = losses.odmo_terms(out, motion, labels, cfg)["mre"].item()
+    body = losses.odmo_terms(out, motion, labels, replace(cfg, pose_loss="body"))["mre"].item()
+    assert world == pytest.approx(cfg.length * 0.01 / 3, rel=1e-5)  # 0.1^2 in one of 3 coordinates, T frames
+    assert body == pytest.approx(world / cfg.n_joints, rel=1e-5)  # the root alone
+    bent = motion.clone()
+    bent[:, :, 1:, 1] += 0.1  # the body off (vertically), the root right: both forms see the same error
+    out["motion"] = bent
+    world = losses.odmo_terms(out, motion, labels, cfg)["mre"].item()
+    assert world == pytest.approx(cfg.length * 5 * 0.01 / 3 * 3 / 4, rel=1e-5)
+    assert losses.odmo_terms(out, motion, labels, replace(cfg, pose_loss="body"))["mre"].item() == pytest.approx(world, rel=1e-5)
+    with pytest.raises(ValueError, match="pose_loss must be one of world, body"):
+        tiny_config(pose_loss="root")
+
+
 def test_minus_re_variant_ignores_the_end_point():
     torch.manual_seed(0)
     model = ODMO(tiny_config(use_end_point=False)).eval()
@@ -659,16 +685,18 @@ def test_cli_train_and_info(tmp_path):
                               "--batch-size", "8", "--out", str(out), "--json", "--sigma2", "0.0025",
                               "--recon-weight", "2", "--energy-weight", "1.5", "--free-energy-weight", "0.5",
                               "--free-from", "3", "--mirror", "--weight-decay", "0.5", "--decoder-dropout", "0.1",
-                              "--crops", "first"])
+                              "--crops", "first", "--pose-loss", "body"])
     assert res.exit_code == 0, res.output
     saved = torch.load(out, weights_only=True)
     config = saved["config"]
     assert config["sigma2"] == 0.0025 and config["recon_weight"] == 2.0 and config["energy_weight"] == 1.5
+    assert config["pose_loss"] == "body"
     assert config["free_energy_weight"] == 0.5 and saved["train_config"]["free_from"] == 3
     assert saved["train_config"]["mirror"] is True and saved["train_config"]["weight_decay"] == 0.5
     assert saved["train_config"]["decoder_dropout"] == 0.1 and saved["train_config"]["crops"] == "first"
     refused = [  # an option's bad value: one line, exit 2
         (["--crops", "last"], "--crops must be random or first, got 'last'"),
+        (["--pose-loss", "root"], "--pose-loss must be one of world, body, got 'root'"),
         (["--decoder-dropout", "1"], "--decoder-dropout must be in [0, 1), got 1.0"),
         (["--weight-decay", "-1"], "--weight-decay must not be negative, got -1.0"),
         (["--free-energy-weight", "-1"], "--free-energy-weight must not be negative, got -1.0"),

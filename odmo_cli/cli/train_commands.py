@@ -115,13 +115,14 @@ def train_odmo_cmd(
     root: RootOpt = None,
     train_parts: Annotated[Optional[str], typer.Option("--train-parts", help="Train only these networks, comma-separated: encoder, trajectory, motion (default: all); the others keep their weights, as from --init.")] = None,
     pose_frame: Annotated[Optional[str], typer.Option("--pose-frame", help="What the pose decoder draws from: world (the dataset's frame, the paper's) or path (each frame's point of the generated trajectory).")] = None,
+    pose_loss: Annotated[Optional[str], typer.Option("--pose-loss", help="What the pose decoder's position error compares: world (every joint in the dataset's frame, the paper's) or body (every joint but the root about the root, the root's path once).")] = None,
     motion_hidden: Annotated[Optional[int], typer.Option("--motion-hidden", help="Hidden units of the pose decoder (default 128, the paper's); with --init, more than the file's widens its decoder, drawing the same motions at first.")] = None,
     checkpoint_every: CheckpointOpt = None, val_every: ValOpt = None,
     out: OutOpt = None, resume: ResumeOpt = None, threads: ThreadsOpt = 0,
     device: DeviceOpt = "cpu", nproc: NprocOpt = 1, seed: SeedOpt = 0, as_json: JsonOpt = False,
 ):
     """Train ODMO (the default of `odmo train`); at the end the checkpoint gets its latent bank and modes."""
-    from odmo_cli.models.odmo import POSE_FRAMES, PRESETS, ROOTS
+    from odmo_cli.models.odmo import POSE_FRAMES, POSE_LOSSES, PRESETS, ROOTS
     from odmo_cli.training.odmo import TrainConfig, train_odmo
 
     out = _out(out, "odmo")
@@ -136,6 +137,8 @@ def train_odmo_cmd(
         raise UserError(f"--tf-per must be step or clip, got {tf_per!r}")
     if pose_frame is not None and pose_frame not in POSE_FRAMES:
         raise UserError(f"--pose-frame must be one of {', '.join(POSE_FRAMES)}, got {pose_frame!r}")
+    if pose_loss is not None and pose_loss not in POSE_LOSSES:
+        raise UserError(f"--pose-loss must be one of {', '.join(POSE_LOSSES)}, got {pose_loss!r}")
     if root is not None and root not in ROOTS:
         raise UserError(f"unknown --root {root!r}; valid: {', '.join(ROOTS)}")
     if pose_frame is not None and init is not None:
@@ -154,7 +157,8 @@ def train_odmo_cmd(
                   height_weight=height_weight)
     overrides = {"use_es": "es" not in (ablate or []), "use_traj": "traj" not in (ablate or []),
                  "use_cons": "cons" not in (ablate or []), "use_end_point": "end-point" not in (ablate or [])}
-    overrides.update(_given(**scales, pose_frame=pose_frame, root=root, motion_hidden=motion_hidden))
+    overrides.update(_given(**scales, pose_frame=pose_frame, pose_loss=pose_loss, root=root,
+                            motion_hidden=motion_hidden))
     if init is not None:  # the file's config stands but for what was asked: loss weights, ablations
         if resume is not None:
             raise UserError("give either --init (start a new stage from a model's weights) or --resume, not both")

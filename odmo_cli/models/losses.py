@@ -54,6 +54,11 @@ def sequence_error(pred: torch.Tensor, target: torch.Tensor, weights: torch.Tens
     return err.flatten(2).mean(-1).sum(-1)
 
 
+def about_root(motion: torch.Tensor) -> torch.Tensor:
+    """(B, T, J, 3) -> (B, T, J, 3): the root as it is, every other joint measured from the root."""
+    return torch.cat([motion[:, :, :1], motion[:, :, 1:] - motion[:, :, :1]], dim=2)
+
+
 def body_motion_stats(motion: torch.Tensor, smooth: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
     """Per clip and joint: speed (mean norm of the frame-to-frame change) and amplitude (RMS distance
     from the mean position) of the joints about the root, after a `smooth`-frame moving average:
@@ -129,7 +134,10 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
         l_r = sequence_error(root_velocities(out["trajectory"]), root_velocities(real_traj), w)
     else:  # the release: positions
         l_r = sequence_error(out["trajectory"], real_traj, w)
-    l_mre = sequence_error(out["motion"], motion, w)
+    if cfg.pose_loss == "body":  # the root's path counts once, not in every joint
+        l_mre = sequence_error(about_root(out["motion"]), about_root(motion), w)
+    else:
+        l_mre = sequence_error(out["motion"], motion, w)
     l_cons = sequence_error(out["trajectory"], out["motion"][:, :, 0])
     l_vel = sequence_error(out["motion"].diff(dim=1), motion.diff(dim=1), w)
     l_energy = energy_error(out["motion"], motion) if cfg.energy_weight else motion.new_zeros(len(motion))
