@@ -118,7 +118,8 @@ def test_shares_cover_the_batch_once_and_weights_average_to_one():
 # 19 pairs a epoch in batches of 8: the last batch of 3 pairs splits 2 + 1 (unequal shares); no
 # clipping, which would hide a gradient scaled by a wrong factor; mirrored clips and dropped decoder
 # units, whose coins and masks each rank draws for the whole batch before taking its rows
-ODMO_KW = dict(pairs_per_epoch=19, batch_size=8, grad_clip=0.0, mirror=True, decoder_dropout=0.3)
+ODMO_KW = dict(pairs_per_epoch=19, batch_size=8, grad_clip=0.0, mirror=True, decoder_dropout=0.3,
+               model={"mix_energy_weight": 0.5})
 
 
 def test_two_gloo_processes_train_odmo_as_one_process(tmp_path, monkeypatch):
@@ -130,6 +131,8 @@ def test_two_gloo_processes_train_odmo_as_one_process(tmp_path, monkeypatch):
     train_on(2, "odmo", tmp_path / "adam2.pt", 2, **ODMO_KW)
     h1, h2 = load_checkpoint(tmp_path / "adam1.pt")["history"], load_checkpoint(tmp_path / "adam2.pt")["history"]
     assert [h["total"] for h in h2] == pytest.approx([h["total"] for h in h1], rel=1e-4)
+    # the mixed decodes' term on its own (a small part of the total): each rank mixes its pairs by their own coins
+    assert [h["mix_energy"] for h in h2] == pytest.approx([h["mix_energy"] for h in h1], rel=1e-4)
     with_sgd("odmo", monkeypatch)
     train("odmo", clips, tmp_path / "one.pt", 2, **ODMO_KW, **SGD_RATES["odmo"])
     train_on(2, "odmo", tmp_path / "two.pt", 2, sgd=True, **ODMO_KW, **SGD_RATES["odmo"])

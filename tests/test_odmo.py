@@ -187,6 +187,53 @@ def test_energy_weight_enters_the_total():
         tiny_config(free_energy_weight=-1.0)
 
 
+def test_mixed_energy_error_asks_for_the_mixture_of_two_clips():
+    big, small = circling(radius=0.2), circling(radius=0.1)
+    lam = torch.tensor([0.5], dtype=torch.float64)
+    # speed and amplitude grow with the radius: halfway between 0.2 and 0.1 moves like radius 0.15
+    assert losses.mixed_energy_error(circling(radius=0.15), big, small, lam).item() == pytest.approx(0.0, abs=1e-9)
+    assert losses.mixed_energy_error(big, big, small, lam).item() == pytest.approx(2 * (0.05 / 0.15) ** 2, rel=1e-6)
+    # lam = 1 is the first clip's energy_error, lam = 0 the second's; phase-blind as energy_error
+    pred = circling(radius=0.12, phase=1.0)
+    assert losses.mixed_energy_error(pred, big, small, torch.ones(1, dtype=torch.float64)).item() == pytest.approx(
+        losses.energy_error(pred, big).item())
+    assert losses.mixed_energy_error(pred, big, small, torch.zeros(1, dtype=torch.float64)).item() == pytest.approx(
+        losses.energy_error(pred, small).item())
+
+
+def test_mixed_decode_is_the_free_decode_of_mixed_codes_of_one_action():
+    """forward(mix=lam): the pairs of one action (rows k, B/2 + k) are decoded free-running from
+    lam z_k + (1 - lam) z_{B/2+k} with the end points mixed alike; the term is the mean over all pairs,
+    0 for pairs of two actions, and enters the total with its weight."""
+    torch.manual_seed(0)
+    cfg = tiny_config(root="decoder", mix_energy_weight=2.0)
+    model = ODMO(cfg).eval()
+    motion = torch.randn(6, cfg.length, cfg.n_joints, 3).cumsum(1)
+    labels = torch.tensor([0, 1, 2, 0, 2, 2])  # pairs (0, 3) and (2, 5) are of one action, (1, 4) is not
+    lam = torch.tensor([0.25, 0.5, 0.9])
+    out = model(motion, labels, eps=torch.zeros(6, cfg.latent_dim), mix=lam)
+    assert out["mix_rows"].tolist() == [0, 2]
+    w = torch.tensor([[0.25], [0.9]])
+    z = w * out["z"][[0, 2]] + (1 - w) * out["z"][[3, 5]]
+    end = w * motion[[0, 2], -1, 0] + (1 - w) * motion[[3, 5], -1, 0]
+    with torch.no_grad():
+        _, expected = model.decode(z, torch.tensor([0, 2]), end)  # free-running, the decoder's own root
+    assert torch.allclose(out["mix_motion"], expected, atol=1e-6)
+    terms = losses.odmo_terms(out, motion, labels, cfg)
+    per_pair = losses.mixed_energy_error(expected, motion[[0, 2]], motion[[3, 5]], torch.tensor([0.25, 0.9]))
+    assert terms["mix_energy"].item() == pytest.approx(per_pair.sum().item() / 3, rel=1e-5)
+    assert terms["mix_energy"].item() > 0
+    plain = losses.total_loss(terms, replace(cfg, mix_energy_weight=0.0))
+    assert losses.total_loss(terms, cfg).item() == pytest.approx(plain.item() + 2.0 * terms["mix_energy"].item(), rel=1e-6)
+    # without mix, or with no pair of one action, nothing is mixed and the term is 0
+    assert "mix_motion" not in model(motion, labels, eps=torch.zeros(6, cfg.latent_dim))
+    apart = model(motion, torch.tensor([0, 1, 2, 1, 2, 0]), eps=torch.zeros(6, cfg.latent_dim), mix=lam)
+    assert "mix_motion" not in apart
+    assert losses.odmo_terms(apart, motion, torch.tensor([0, 1, 2, 1, 2, 0]), cfg)["mix_energy"].item() == 0.0
+    with pytest.raises(ValueError, match="mix_energy_weight must be non-negative"):
+        tiny_config(mix_energy_weight=-1.0)
+
+
 def test_free_decode_is_the_sampling_decode_of_the_same_codes():
     """forward(free=True) adds the decode of the same codes without teacher forcing, which is what
     sampling runs; the free-running energy term is then computed on it (and is 0 without it)."""
@@ -685,18 +732,20 @@ def test_cli_train_and_info(tmp_path):
                               "--batch-size", "8", "--out", str(out), "--json", "--sigma2", "0.0025",
                               "--recon-weight", "2", "--energy-weight", "1.5", "--free-energy-weight", "0.5",
                               "--free-from", "3", "--mirror", "--weight-decay", "0.5", "--decoder-dropout", "0.1",
-                              "--crops", "first", "--pose-loss", "body"])
+                              "--crops", "first", "--pose-loss", "body", "--mix-energy-weight", "0.7"])
     assert res.exit_code == 0, res.output
     saved = torch.load(out, weights_only=True)
     config = saved["config"]
     assert config["sigma2"] == 0.0025 and config["recon_weight"] == 2.0 and config["energy_weight"] == 1.5
-    assert config["pose_loss"] == "body"
+    assert config["pose_loss"] == "body" and config["mix_energy_weight"] == 0.7
+    assert saved["history"][-1]["mix_energy"] > 0  # trained and logged
     assert config["free_energy_weight"] == 0.5 and saved["train_config"]["free_from"] == 3
     assert saved["train_config"]["mirror"] is True and saved["train_config"]["weight_decay"] == 0.5
     assert saved["train_config"]["decoder_dropout"] == 0.1 and saved["train_config"]["crops"] == "first"
     refused = [  # an option's bad value: one line, exit 2
         (["--crops", "last"], "--crops must be random or first, got 'last'"),
         (["--pose-loss", "root"], "--pose-loss must be one of world, body, got 'root'"),
+        (["--mix-energy-weight", "-1"], "--mix-energy-weight must not be negative, got -1.0"),
         (["--decoder-dropout", "1"], "--decoder-dropout must be in [0, 1), got 1.0"),
         (["--weight-decay", "-1"], "--weight-decay must not be negative, got -1.0"),
         (["--free-energy-weight", "-1"], "--free-energy-weight must not be negative, got -1.0"),

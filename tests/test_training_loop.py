@@ -34,12 +34,13 @@ def clips():
     return read_dataset(root, manifest)
 
 
-def train(kind: str, clips, out, epochs: int, resume=None, progress=None, **kw):
-    """One tiny training of `kind` (every trainer's own tiny recipe), one thread."""
+def train(kind: str, clips, out, epochs: int, resume=None, progress=None, model=None, **kw):
+    """One tiny training of `kind` (every trainer's own tiny recipe), one thread; `model`: ODMO's
+    config values on top of its tiny recipe's."""
     if kind == "odmo":
         tc = TrainConfig(**{**dict(epochs=epochs, batch_size=16, val_every=0, checkpoint_every=0, val_fraction=0.0,
                                    seed=3, threads=1), **kw})
-        return train_odmo(clips, tc, out, {"motion_hidden": 16, "traj_hidden": 16}, resume, progress)
+        return train_odmo(clips, tc, out, {"motion_hidden": 16, "traj_hidden": 16, **(model or {})}, resume, progress)
     if kind == "a2m":
         tc = A2MTrainConfig(**{**dict(epochs=epochs, batch_size=16, lr=1e-2, val_fraction=0.0, val_every=0,
                                       checkpoint_every=0, threads=1), **kw})

@@ -111,6 +111,7 @@ def train_odmo_cmd(
     energy_weight: Annotated[Optional[float], typer.Option("--energy-weight", help="Weight of L_energy, each joint's speed and amplitude about the root against the clip's (preset odmo: 2; 0: off, as in the paper and the release).")] = None,
     free_energy_weight: Annotated[Optional[float], typer.Option("--free-energy-weight", help="Weight of L_energy on a second, free-running decode of the same codes, as sampling runs it (preset odmo: 2; 0: off).")] = None,
     height_weight: Annotated[Optional[float], typer.Option("--height-weight", help="Weight of L_height, the root height's speed and amplitude against the clip's, on the root that sampling draws (--root: the trajectory generator's, or the pose decoder's free-running decode; 0: off, the default, as in the paper and the release).")] = None,
+    mix_energy_weight: Annotated[Optional[float], typer.Option("--mix-energy-weight", help="Weight of L_energy on free-running decodes of codes mixed between two training clips of one action, asked to move as much as the same mixture of the two clips (0: off, the default; in neither the paper nor the release).")] = None,
     free_from: Annotated[Optional[int], typer.Option("--free-from", help="First epoch (0-based) of the free-running L_energy (default: once teacher forcing has decayed; half the epochs when it decays over all).")] = None,
     root: RootOpt = None,
     train_parts: Annotated[Optional[str], typer.Option("--train-parts", help="Train only these networks, comma-separated: encoder, trajectory, motion (default: all); the others keep their weights, as from --init.")] = None,
@@ -150,11 +151,12 @@ def train_odmo_cmd(
         if value is not None and not value > 0:
             raise UserError(f"--{key.replace('_', '-')} must be a positive number, got {value}")
     for flag, value in (("--vel-weight", vel_weight), ("--energy-weight", energy_weight),
-                        ("--free-energy-weight", free_energy_weight), ("--height-weight", height_weight)):
+                        ("--free-energy-weight", free_energy_weight), ("--height-weight", height_weight),
+                        ("--mix-energy-weight", mix_energy_weight)):
         if value is not None and value < 0:
             raise UserError(f"{flag} must not be negative, got {value}")
     scales.update(vel_weight=vel_weight, energy_weight=energy_weight, free_energy_weight=free_energy_weight,
-                  height_weight=height_weight)
+                  height_weight=height_weight, mix_energy_weight=mix_energy_weight)
     overrides = {"use_es": "es" not in (ablate or []), "use_traj": "traj" not in (ablate or []),
                  "use_cons": "cons" not in (ablate or []), "use_end_point": "end-point" not in (ablate or [])}
     overrides.update(_given(**scales, pose_frame=pose_frame, pose_loss=pose_loss, root=root,

@@ -77,7 +77,21 @@ def energy_error(pred: torch.Tensor, target: torch.Tensor, floor: float = 0.005)
 
     Each joint's error is divided by the target clip's mean over joints, floored at `floor` (units
     per frame, or units) so that clips that hardly move do not dominate."""
-    (sp, ap), (st, at) = body_motion_stats(pred), body_motion_stats(target)
+    return _stats_error(body_motion_stats(pred), body_motion_stats(target), floor)
+
+
+def mixed_energy_error(pred: torch.Tensor, first: torch.Tensor, second: torch.Tensor, lam: torch.Tensor,
+                       floor: float = 0.005) -> torch.Tensor:
+    """energy_error of pred (B, T, J, 3) against the lam-weighted mean (lam: (B,)) of two clips' speeds and
+    amplitudes, joint by joint: a decode of the code lam z1 + (1 - lam) z2 asked to move as much as the
+    clips it lies between, in whatever phase: (B,)."""
+    (s1, a1), (s2, a2) = body_motion_stats(first), body_motion_stats(second)
+    w = lam[:, None]
+    return _stats_error(body_motion_stats(pred), (w * s1 + (1 - w) * s2, w * a1 + (1 - w) * a2), floor)
+
+
+def _stats_error(pred_stats, target_stats, floor: float) -> torch.Tensor:
+    (sp, ap), (st, at) = pred_stats, target_stats
     ns = st.mean(1, keepdim=True).clamp_min(floor)
     na = at.mean(1, keepdim=True).clamp_min(floor)
     return (((sp - st) / ns).pow(2) + ((ap - at) / na).pow(2)).mean(1)
@@ -145,6 +159,11 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
     l_height = (height_error(drawn_root(out, cfg), motion, cfg.up_axis) if cfg.height_weight
                 else motion.new_zeros(len(motion)))
     half = len(motion) // 2
+    l_mix = motion.new_zeros(half)  # per pair; 0 for pairs of two actions, which are not mixed
+    if "mix_motion" in out:
+        rows = out["mix_rows"]
+        l_mix = l_mix.index_put((rows,), mixed_energy_error(out["mix_motion"], motion[:half][rows],
+                                                            motion[half:][rows], out["mix_lam"][rows]))
     mu, logvar = out["mu"], out["logvar"]
     same = labels[:half] == labels[half:]
     l_con = contrastive(mu[:half], mu[half:], same, cfg.alpha, cfg.same_class_deadzone)
@@ -158,6 +177,7 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
         "energy": l_energy.mean(),
         "free_energy": l_free.mean(),
         "height": l_height.mean(),
+        "mix_energy": l_mix.mean(),
         "vae": standard_kl(mu, logvar).mean() * 2,
     }
 
@@ -174,6 +194,8 @@ def total_loss(terms: dict[str, torch.Tensor], cfg) -> torch.Tensor:
         recon = recon + cfg.free_energy_weight * terms["free_energy"]
     if cfg.height_weight:
         recon = recon + cfg.height_weight * terms["height"]
+    if cfg.mix_energy_weight:
+        recon = recon + cfg.mix_energy_weight * terms["mix_energy"]
     if cfg.use_traj:
         recon = recon + terms["r"]
     if cfg.use_cons:

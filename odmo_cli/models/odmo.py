@@ -66,6 +66,13 @@ class ODMOConfig(Config):
     # free-running decode.
     # Squared position errors flatten a jump's rise wherever its frame is uncertain; this term does not.
     height_weight: float = 0.0
+    # weight of L_energy on free-running decodes of codes between two training clips of one action (not in
+    # the paper nor the release): each same-action pair's codes mixed as lam z1 + (1 - lam) z2 with lam
+    # uniform in [0, 1], decoded with the end points mixed alike, and asked for the same mixture of the two
+    # clips' speeds and amplitudes (losses.mixed_energy_error). Sampling draws codes between the training
+    # clips'; the other terms only see codes next to them, where a decoder can fit well and still draw the
+    # codes between them flat (measured on CMU MoCap: docs/training.md).
+    mix_energy_weight: float = 0.0
     # where a decoded motion's root comes from (decode: sampling and the training report; training's
     # losses see the pose decoder's own output, L_height excepted). "decoder": the pose decoder's root joint, as in
     # the paper and the release, kept near the trajectory by L_cons only. "trajectory": the body the pose
@@ -102,6 +109,8 @@ class ODMOConfig(Config):
                              f"{self.vel_weight}, {self.energy_weight}, {self.free_energy_weight}")
         if self.height_weight < 0:
             raise ValueError(f"height_weight must be non-negative, got {self.height_weight}")
+        if self.mix_energy_weight < 0:
+            raise ValueError(f"mix_energy_weight must be non-negative, got {self.mix_energy_weight}")
 
 
 # The loss scales `odmo train` and `odmo ship` use, per dataset: value and source. ODMOConfig's own
@@ -317,11 +326,14 @@ class ODMO(nn.Module):
 
     def forward(self, motion: torch.Tensor, labels: torch.Tensor, generator: torch.Generator | None = None,
                 teacher: torch.Tensor | None = None, eps: torch.Tensor | None = None,
-                free: bool = False, keep: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+                free: bool = False, keep: torch.Tensor | None = None,
+                mix: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """Reconstruct a batch: encode its LMP, sample z (noise `eps` (B, D), else drawn from
         `generator`), decode with the real end point; with `free`, also without teacher forcing
         ("free_motion"). keep (2, B, H): the pose decoder's dropout (MotionGenerator.forward), the
-        same units in both decodes."""
+        same units in both decodes. mix (B/2,): for the pairs of rows k and B/2 + k of one action,
+        also the free-running decode of mix z_k + (1 - mix) z_{B/2+k} ("mix_motion", those pairs'
+        rows "mix_rows", "mix_lam": mix), the end points mixed alike, without dropout."""
         mu, logvar = self.encode(motion)
         if eps is None:
             eps = torch.randn(mu.shape, generator=generator, dtype=mu.dtype, device=mu.device)
@@ -334,6 +346,16 @@ class ODMO(nn.Module):
             # with no step forced the first decode is already the free-running one: the same
             # values and gradients, at half the cost of decoding it twice
             out["free_motion"] = self._poses(prepared, trajectory, keep=keep) if forced else out["motion"]
+        if mix is not None:
+            half = len(motion) // 2
+            rows = torch.nonzero(labels[:half] == labels[half:2 * half]).flatten()
+            if len(rows) == 0:  # no pair of one action in this batch: nothing to mix
+                return out
+            w = mix[rows, None]  # (M, 1)
+            zm = w * z[rows] + (1 - w) * z[half + rows]
+            end = w * motion[rows, -1, 0] + (1 - w) * motion[half + rows, -1, 0]
+            mix_traj, mix_prepared = self._plan(zm, labels[rows], end)
+            out.update(mix_motion=self._poses(mix_prepared, mix_traj), mix_rows=rows, mix_lam=mix)
         return out
 
 

@@ -160,11 +160,13 @@ class ODMOTrainer(Trainer):
             teacher = torch.rand(shape, generator=gen, device=dev) < teacher_rate
             eps = torch.randn((2 * n, self.cfg.latent_dim), generator=gen, device=dev)
             keep = self.dropout_masks(2 * n, gen) if tc.decoder_dropout else None  # (2, 2B, H)
+            mix = torch.rand(n, generator=gen, device=dev) if self.cfg.mix_energy_weight else None  # (B,)
             if mine is not None:
                 take = torch.from_numpy(mine).to(dev)
                 eps, teacher = eps[take], teacher[take] if tc.tf_per == "clip" else teacher
                 keep = None if keep is None else keep[:, take]
-            out = self.net(motion, lab, teacher=teacher, eps=eps, free=free, keep=keep)
+                mix = None if mix is None else mix[rows]
+            out = self.net(motion, lab, teacher=teacher, eps=eps, free=free, keep=keep, mix=mix)
             terms = odmo_terms(out, motion, lab, self.cfg)
             loss = total_loss(terms, self.cfg)
             self.check_finite(loss)
