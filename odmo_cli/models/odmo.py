@@ -71,7 +71,7 @@ class ODMOConfig(Config):
     # uniform in [0, 1], decoded with the end points mixed alike, and asked for the same mixture of the two
     # clips' speeds and amplitudes (losses.mixed_energy_error). Sampling draws codes between the training
     # clips'; the other terms only see codes next to them, where a decoder can fit well and still draw the
-    # codes between them flat (measured on CMU MoCap: docs/training.md).
+    # codes between them flat (measured on HumanAct12: docs/training.md).
     mix_energy_weight: float = 0.0
     # where a decoded motion's root comes from (decode: sampling and the training report; training's
     # losses see the pose decoder's own output, L_height excepted). "decoder": the pose decoder's root joint, as in
