@@ -610,6 +610,25 @@ def test_decoder_dropout_draws_fixed_units_per_clip_at_its_rate(demo_clips, tmp_
             TrainConfig(decoder_dropout=bad)
 
 
+def test_code_noise_scales_the_posterior_noise_and_leaves_the_other_draws(demo_clips, tmp_path, monkeypatch):
+    seen = []
+    net = ODMO.forward
+    monkeypatch.setattr(ODMO, "forward", lambda self, *a, eps=None, teacher=None, **kw:
+                        seen.append((eps, teacher)) or net(self, *a, eps=eps, teacher=teacher, **kw))
+    cfg = model_config_for(demo_clips, {"motion_hidden": 16, "traj_hidden": 8})
+    for i, noise in enumerate((1.0, 0.5, 0.0)):
+        torch.manual_seed(0)
+        ODMOTrainer(demo_clips, cfg, small_tc(epochs=1, batch_size=1024, code_noise=noise), tmp_path / f"{i}.pt").run()
+    (full, tf), (half, tf_half), (none, tf_none) = seen
+    assert full.abs().min() > 0 and torch.equal(half, full * 0.5) and torch.equal(none, torch.zeros_like(full))
+    assert torch.equal(tf, tf_half) and torch.equal(tf, tf_none)  # the teacher-forcing coins drawn as before
+    motion = torch.from_numpy(np.stack([m[:cfg.length] for m in demo_clips.motions[:2]])).float()
+    out = ODMO(cfg).forward(motion, torch.tensor([0, 1]), eps=torch.zeros(2, cfg.latent_dim))
+    assert torch.equal(out["z"], out["mu"])  # no noise: the decoders see the mean code
+    with pytest.raises(UserError, match="--code-noise must not be negative, got -0.5"):
+        TrainConfig(code_noise=-0.5)
+
+
 def test_free_running_term_starts_once_teacher_forcing_has_decayed():
     assert TrainConfig(epochs=1000, tf_epochs=500).free_start() == 500
     assert TrainConfig(epochs=300).free_start() == 150  # teacher forcing decays over all epochs: from half
@@ -732,7 +751,8 @@ def test_cli_train_and_info(tmp_path):
                               "--batch-size", "8", "--out", str(out), "--json", "--sigma2", "0.0025",
                               "--recon-weight", "2", "--energy-weight", "1.5", "--free-energy-weight", "0.5",
                               "--free-from", "3", "--mirror", "--weight-decay", "0.5", "--decoder-dropout", "0.1",
-                              "--crops", "first", "--pose-loss", "body", "--mix-energy-weight", "0.7"])
+                              "--crops", "first", "--pose-loss", "body", "--mix-energy-weight", "0.7",
+                              "--code-noise", "0.25"])
     assert res.exit_code == 0, res.output
     saved = torch.load(out, weights_only=True)
     config = saved["config"]
@@ -742,8 +762,10 @@ def test_cli_train_and_info(tmp_path):
     assert config["free_energy_weight"] == 0.5 and saved["train_config"]["free_from"] == 3
     assert saved["train_config"]["mirror"] is True and saved["train_config"]["weight_decay"] == 0.5
     assert saved["train_config"]["decoder_dropout"] == 0.1 and saved["train_config"]["crops"] == "first"
+    assert saved["train_config"]["code_noise"] == 0.25
     refused = [  # an option's bad value: one line, exit 2
         (["--crops", "last"], "--crops must be random or first, got 'last'"),
+        (["--code-noise", "-1"], "--code-noise must not be negative, got -1.0"),
         (["--pose-loss", "root"], "--pose-loss must be one of world, body, got 'root'"),
         (["--mix-energy-weight", "-1"], "--mix-energy-weight must not be negative, got -1.0"),
         (["--decoder-dropout", "1"], "--decoder-dropout must be in [0, 1), got 1.0"),

@@ -102,6 +102,7 @@ def train_odmo_cmd(
     weight_decay: Annotated[Optional[float], typer.Option("--weight-decay", help="AdamW's decoupled weight decay (default 0: Adam, as in the paper and the release).")] = None,
     decoder_dropout: Annotated[Optional[float], typer.Option("--decoder-dropout", help="Drop each of the pose decoder's hidden units with this probability in training, the same units at every step of a clip (default 0, as in the paper and the release).")] = None,
     crops: Annotated[Optional[str], typer.Option("--crops", help="Which frames of each training clip a batch holds: random (a fresh crop each time, the default, as in the release) or first (the first T, the crops the latent bank and the mode mixtures encode).")] = None,
+    code_noise: Annotated[Optional[float], typer.Option("--code-noise", help="Scale of the posterior noise on the codes the decoders see in training (default 1, the VAE's, as in the paper and the release; 0: each crop's mean code, what sampling's mixtures are fitted on).")] = None,
     mirror: Annotated[bool, typer.Option("--mirror", help="Mirror each training clip with probability 1/2 (left and right swapped; off by default, as in the paper and the release).", metavar="")] = False,
     same_class: Annotated[Optional[float], typer.Option("--same-class-fraction", help="Share of same-action pairs (default 0.5, as the authors' release; -1: independent random pairs).")] = None,
     preset: Annotated[str, typer.Option("--preset", help="Loss scales: odmo (default: the release's plus what measured better), release (the authors' code) or paper (its text); docs/training.md.")] = "odmo",
@@ -169,6 +170,7 @@ def train_odmo_cmd(
     tc = TrainConfig(**_given(epochs=_epochs(resume, epochs), batch_size=batch_size, checkpoint_every=checkpoint_every,
                               val_every=val_every, same_class_fraction=same_class, tf_per=tf_per, mirror=mirror or None,
                               weight_decay=weight_decay, decoder_dropout=decoder_dropout, crops=crops,
+                              code_noise=code_noise,
                               free_from=free_from, tf_start=tf_start, tf_end=tf_end, train_parts=train_parts),
                      lr=lr, lr_final=lr if lr_final is None else lr_final, tf_epochs=tf_epochs,
                      seed=seed, threads=threads)

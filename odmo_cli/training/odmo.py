@@ -63,6 +63,10 @@ class TrainConfig(LoopConfig):
     # the networks this run trains, comma-separated (PARTS); "": all. The others keep their weights
     # (a stage that should change what sampling draws of one part and leave the rest as they are)
     train_parts: str = ""
+    # scale of the posterior noise on the codes the decoders see: z = mu + code_noise * std * eps. 1: the
+    # VAE's reparameterisation (the paper's and the release's); 0: each crop's mean code, as sampling's
+    # mixtures are fitted on them (neither's). L_es and the KL read the posterior itself, not z.
+    code_noise: float = 1.0
 
     def __post_init__(self):
         if self.epochs <= 0 or self.batch_size <= 0:
@@ -85,6 +89,8 @@ class TrainConfig(LoopConfig):
             raise UserError(f"--crops must be random or first, got {self.crops!r}")
         if not 0 <= self.decoder_dropout < 1:
             raise UserError(f"--decoder-dropout must be in [0, 1), got {self.decoder_dropout}")
+        if not self.code_noise >= 0:
+            raise UserError(f"--code-noise must not be negative, got {self.code_noise}")
         if self.same_class_fraction > 1:
             raise UserError(f"--same-class-fraction must be in [0, 1], got {self.same_class_fraction}")
         super().__post_init__()
@@ -159,6 +165,8 @@ class ODMOTrainer(Trainer):
             shape = (2 * n, self.cfg.length) if tc.tf_per == "clip" else (self.cfg.length,)
             teacher = torch.rand(shape, generator=gen, device=dev) < teacher_rate
             eps = torch.randn((2 * n, self.cfg.latent_dim), generator=gen, device=dev)
+            if tc.code_noise != 1:  # drawn all the same, so the other draws stay where they were
+                eps = eps * tc.code_noise
             keep = self.dropout_masks(2 * n, gen) if tc.decoder_dropout else None  # (2, 2B, H)
             mix = torch.rand(n, generator=gen, device=dev) if self.cfg.mix_energy_weight else None  # (B,)
             if mine is not None:
