@@ -613,15 +613,16 @@ def test_decoder_dropout_draws_fixed_units_per_clip_at_its_rate(demo_clips, tmp_
 def test_code_noise_scales_the_posterior_noise_and_leaves_the_other_draws(demo_clips, tmp_path, monkeypatch):
     seen = []
     net = ODMO.forward
-    monkeypatch.setattr(ODMO, "forward", lambda self, *a, eps=None, teacher=None, **kw:
-                        seen.append((eps, teacher)) or net(self, *a, eps=eps, teacher=teacher, **kw))
+    monkeypatch.setattr(ODMO, "forward", lambda self, *a, eps=None, keep=None, **kw:
+                        seen.append((eps, keep)) or net(self, *a, eps=eps, keep=keep, **kw))
     cfg = model_config_for(demo_clips, {"motion_hidden": 16, "traj_hidden": 8})
     for i, noise in enumerate((1.0, 0.5, 0.0)):
         torch.manual_seed(0)
-        ODMOTrainer(demo_clips, cfg, small_tc(epochs=1, batch_size=1024, code_noise=noise), tmp_path / f"{i}.pt").run()
-    (full, tf), (half, tf_half), (none, tf_none) = seen
+        tc = small_tc(epochs=1, batch_size=1024, code_noise=noise, decoder_dropout=0.5)
+        ODMOTrainer(demo_clips, cfg, tc, tmp_path / f"{i}.pt").run()
+    (full, keep), (half, keep_half), (none, keep_none) = seen
     assert full.abs().min() > 0 and torch.equal(half, full * 0.5) and torch.equal(none, torch.zeros_like(full))
-    assert torch.equal(tf, tf_half) and torch.equal(tf, tf_none)  # the teacher-forcing coins drawn as before
+    assert torch.equal(keep, keep_half) and torch.equal(keep, keep_none)  # drawn after the noise: as before
     motion = torch.from_numpy(np.stack([m[:cfg.length] for m in demo_clips.motions[:2]])).float()
     out = ODMO(cfg).forward(motion, torch.tensor([0, 1]), eps=torch.zeros(2, cfg.latent_dim))
     assert torch.equal(out["z"], out["mu"])  # no noise: the decoders see the mean code
