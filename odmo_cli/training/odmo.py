@@ -164,9 +164,8 @@ class ODMOTrainer(Trainer):
             # drawn for the whole batch, in the order of one process, then this rank's rows taken
             shape = (2 * n, self.cfg.length) if tc.tf_per == "clip" else (self.cfg.length,)
             teacher = torch.rand(shape, generator=gen, device=dev) < teacher_rate
-            eps = torch.randn((2 * n, self.cfg.latent_dim), generator=gen, device=dev)
-            if tc.code_noise != 1:  # drawn all the same, so the other draws stay where they were
-                eps = eps * tc.code_noise
+            # scaled after the draw (x 1 is exact), so the other draws stay where they were
+            eps = torch.randn((2 * n, self.cfg.latent_dim), generator=gen, device=dev) * tc.code_noise
             keep = self.dropout_masks(2 * n, gen) if tc.decoder_dropout else None  # (2, 2B, H)
             mix = torch.rand(n, generator=gen, device=dev) if self.cfg.mix_energy_weight else None  # (B,)
             if mine is not None:
