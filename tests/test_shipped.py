@@ -112,7 +112,8 @@ def test_shipped_odmo_loads_safely_and_describes_its_data(short, dataset):
 
     path = shipped_file(short)
     assert path is not None, f"no shipped {short} model"
-    assert path.stat().st_size < 6_500_000  # float16, the expand layer as int8 rows
+    # float16, the expand layer as int8 rows (float32 would be over 18 MB for HumanAct12's 6.2 M weights)
+    assert path.stat().st_size < 10_000_000
     ckpt = torch.load(path, weights_only=True)
     manifest = load_manifest(dataset)
     assert ckpt["kind"] == "odmo" and ckpt["dataset"]["name"] == dataset
@@ -217,10 +218,10 @@ def test_unmet_bars_names_each_miss():
 @pytest.mark.slow
 @pytest.mark.parametrize("short, dataset", [
     pytest.param("humanact12", "humanact12", marks=pytest.mark.xfail(strict=True, reason=(
-        "the new defaults and nine stages without teacher forcing, the last one the pose decoder alone about the "
-        "root (2026-12-05), the root on the trajectory: FID 0.055, every action >= 85 (walk, eat 88.0), Diversity, "
-        "Multimodality 1.56 (real 1.57), speed 0.96, amplitude 0.93 and dist_e 0.0030 meet their bars; Acc 93.99 "
-        "does not"))),
+        "the new defaults and eight stages without teacher forcing, the last one the pose decoder alone, widened "
+        "to 256 units, about the root (2026-12-06), the root on the trajectory: FID 0.057, every action >= 85 "
+        "(walk 89.0), Diversity, Multimodality 1.55 (real 1.57), speed 0.96, amplitude 0.93 and dist_e 0.0031 "
+        "meet their bars; Acc 94.62 does not"))),
     pytest.param("cmu", "cmu_mocap", marks=pytest.mark.xfail(strict=True, reason=(
         "the new defaults (2026-12-02), a 40-epoch L_height stage and three 330-epoch pose-decoder stages "
         "(2026-12-04), the root on the trajectory: FID 0.483, speed 0.93, amplitude 0.91, Diversity, Multimodality "
