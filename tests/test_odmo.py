@@ -626,8 +626,9 @@ def test_code_noise_scales_the_posterior_noise_and_leaves_the_other_draws(demo_c
     motion = torch.from_numpy(np.stack([m[:cfg.length] for m in demo_clips.motions[:2]])).float()
     out = ODMO(cfg).forward(motion, torch.tensor([0, 1]), eps=torch.zeros(2, cfg.latent_dim))
     assert torch.equal(out["z"], out["mu"])  # no noise: the decoders see the mean code
-    with pytest.raises(UserError, match="--code-noise must not be negative, got -0.5"):
-        TrainConfig(code_noise=-0.5)
+    for bad in (-0.5, float("nan"), float("inf")):
+        with pytest.raises(UserError, match=f"--code-noise must be a finite number >= 0, got {bad}"):
+            TrainConfig(code_noise=bad)
 
 
 def test_free_running_term_starts_once_teacher_forcing_has_decayed():
@@ -766,7 +767,7 @@ def test_cli_train_and_info(tmp_path):
     assert saved["train_config"]["code_noise"] == 0.25
     refused = [  # an option's bad value: one line, exit 2
         (["--crops", "last"], "--crops must be random or first, got 'last'"),
-        (["--code-noise", "-1"], "--code-noise must not be negative, got -1.0"),
+        (["--code-noise", "-1"], "--code-noise must be a finite number >= 0, got -1.0"),
         (["--pose-loss", "root"], "--pose-loss must be one of world, body, got 'root'"),
         (["--mix-energy-weight", "-1"], "--mix-energy-weight must not be negative, got -1.0"),
         (["--decoder-dropout", "1"], "--decoder-dropout must be in [0, 1), got 1.0"),

@@ -11,6 +11,7 @@ for the whole batch and computes its share of the pairs (training/distributed.py
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -89,8 +90,8 @@ class TrainConfig(LoopConfig):
             raise UserError(f"--crops must be random or first, got {self.crops!r}")
         if not 0 <= self.decoder_dropout < 1:
             raise UserError(f"--decoder-dropout must be in [0, 1), got {self.decoder_dropout}")
-        if not self.code_noise >= 0:
-            raise UserError(f"--code-noise must not be negative, got {self.code_noise}")
+        if not 0 <= self.code_noise < math.inf:  # also refuses nan, which every comparison fails
+            raise UserError(f"--code-noise must be a finite number >= 0, got {self.code_noise}")
         if self.same_class_fraction > 1:
             raise UserError(f"--same-class-fraction must be in [0, 1], got {self.same_class_fraction}")
         super().__post_init__()
