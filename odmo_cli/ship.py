@@ -40,7 +40,7 @@ from odmo_cli.training.odmo import TrainConfig, train_odmo
 # 3e-4 -> 3e-5 (stages 3 and 4: each lowered the validation error and read better under both classifiers),
 # then 110 such epochs at batch 64 with L_energy and its free-running twin at 0.3 instead of 2 (stage 5:
 # the lowest validation error of five continuations whose validation speed and amplitude stay within
-# the quality bars), then that stage at the rate 3e-3 -> 3e-5 for 660 epochs and three times for 330, each
+# the quality bars), then that stage at the rate 3e-3 -> 3e-5 for 660 epochs and twice for 330, each
 # from the previous stage's compact file, at the build's seed + 1 (stages 6-8, "the E line at seed 1": kept
 # by a rule on the validation split written before they ran, which they met; they replaced sixteen stages
 # 6-21 that took 0.71 M pairs more: docs/training.md), then 300 epochs training the pose decoder alone,

@@ -112,13 +112,14 @@ def test_shipped_odmo_loads_safely_and_describes_its_data(short, dataset):
 
     path = shipped_file(short)
     assert path is not None, f"no shipped {short} model"
-    # float16, the expand layer as int8 rows (float32 would be over 18 MB for HumanAct12's 6.2 M weights)
+    # float16, the expand layer as int8 rows (plain float16 would be 12.5 MB for HumanAct12's 6.2 M weights)
     assert path.stat().st_size < 10_000_000
     ckpt = torch.load(path, weights_only=True)
     manifest = load_manifest(dataset)
     assert ckpt["kind"] == "odmo" and ckpt["dataset"]["name"] == dataset
     assert_describes(ckpt, manifest)
     assert {"latent_bank", "modes", "train_config"} <= set(ckpt) and "optimizer" not in ckpt
+    assert ckpt["int8_scales"], "the expand layer should be stored as int8 rows"
     batch = sample(load_model(short), ["all"], 2, seed=0)
     assert batch.motions.shape == (2 * len(manifest.actions), manifest.clip_length, manifest.skeleton.n_joints, 3)
     assert np.isfinite(batch.motions).all()
