@@ -380,7 +380,8 @@ def ship_cmd(
     (real clips, cosine-decayed Adam), then ODMO (Adam from 3x the paper's rate, cosine decay, teacher
     forcing decayed over the first half of the epochs, 2 threads; on HumanAct12 then eight stages without
     teacher forcing, the last one the pose decoder alone, widened), then compact files (float16, the
-    largest layer as int8 rows). Run it again after an interruption to continue where it stopped. The recipes' numbers: docs/training.md."""
+    largest layer as int8 rows). Run it again after an interruption to continue where it stopped. The
+    recipes' numbers: docs/training.md."""
     from odmo_cli.ship import build, recipe_name, total_epochs
 
     with (_epoch_bar(total_epochs(recipe_name(dataset)), as_json) as update,
