@@ -191,15 +191,18 @@ def stage_settings(stage: dict, seed: int) -> dict:
     return {**settings, "seed": seed + stage.get("seed_offset", 0)}
 
 
-def _check_finished(done: Path, stage: dict, seed: int) -> None:
-    """A UserError when a finished stage file beside the output was trained with other settings (a
-    build under an older recipe or another --seed): the build would go on from the wrong weights.
-    Threads are not compared: they change the speed, not the run."""
-    tc = load_checkpoint(done).get("train_config", {})
+def _check_settings(path: Path, stage: dict, seed: int) -> None:
+    """A UserError when a stage file beside the output, finished or to be resumed, was trained with
+    other settings or model values than the recipe's stage (a build under an older recipe or another
+    --seed): the build would go on from the wrong weights, or resume would keep the file's own
+    settings (training.loop: Trainer.resumed). Threads are not compared: they change the speed, not the run."""
+    ckpt = load_checkpoint(path)
+    tc, cfg = ckpt.get("train_config", {}), ckpt.get("config", {})
     wanted = {k: v for k, v in stage_settings(stage, seed).items() if k != "threads"}
     differ = [f"{k} {tc.get(k)!r}, not {v!r}" for k, v in wanted.items() if tc.get(k) != v]
+    differ += [f"{k} {cfg.get(k)!r}, not {v!r}" for k, v in stage.get("model", {}).items() if cfg.get(k) != v]
     if differ:
-        raise UserError(f"{done} was trained with other settings than this recipe's stage ({'; '.join(differ)}); "
+        raise UserError(f"{path} was trained with other settings than this recipe's stage ({'; '.join(differ)}); "
                         "remove it to train that stage again, or build into another --out folder")
 
 
@@ -216,10 +219,12 @@ def _odmo_stages(clips, recipe: dict, final: Path, seed: int, progress: Callable
         stage_progress = progress if not (progress and offset) else (
             lambda log, o=offset: progress({**log, "epoch": log["epoch"] + o}))
         if done != final and done.is_file() and not work.is_file():
-            _check_finished(done, recipe[key], seed)
+            _check_settings(done, recipe[key], seed)
             start, offset = done, offset + recipe[key]["epochs"]
             continue
         resume = work if work.is_file() else None
+        if resume:
+            _check_settings(work, recipe[key], seed)
         tc = TrainConfig(**stage_settings(recipe[key], seed))
         say(f"training ODMO on {clips.manifest.name}{f', stage {i + 1}' if i else ''} ({tc.epochs} epochs"
             f"{', resuming ' + str(work) if resume else ''})")

@@ -769,11 +769,11 @@ def test_cli_train_and_info(tmp_path):
         (["--crops", "last"], "--crops must be random or first, got 'last'"),
         (["--code-noise", "-1"], "--code-noise must be a finite number >= 0, got -1.0"),
         (["--pose-loss", "root"], "--pose-loss must be one of world, body, got 'root'"),
-        (["--mix-energy-weight", "-1"], "--mix-energy-weight must not be negative, got -1.0"),
+        (["--mix-energy-weight", "-1"], "--mix-energy-weight must be a finite number >= 0, got -1.0"),
         (["--decoder-dropout", "1"], "--decoder-dropout must be in [0, 1), got 1.0"),
         (["--weight-decay", "-1"], "--weight-decay must not be negative, got -1.0"),
-        (["--free-energy-weight", "-1"], "--free-energy-weight must not be negative, got -1.0"),
-        (["--height-weight", "-1"], "--height-weight must not be negative, got -1.0"),
+        (["--free-energy-weight", "-1"], "--free-energy-weight must be a finite number >= 0, got -1.0"),
+        (["--height-weight", "-1"], "--height-weight must be a finite number >= 0, got -1.0"),
         (["--root", "hips"], "unknown --root 'hips'; valid: trajectory, decoder, ground"),
     ]
     for args, message in refused:

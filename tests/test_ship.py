@@ -149,6 +149,24 @@ def test_build_refuses_a_finished_stage_trained_otherwise(lines_folder, lines_mo
     assert sorted(p.name for p in tmp_path.iterdir()) == ["odmo_lines.stage1.pt"]
 
 
+@pytest.mark.parametrize("change, named", [({"epochs": 7}, "epochs 150, not 7"),
+                                           ({"model": {"motion_hidden": 64}}, "motion_hidden 32, not 64")])
+def test_build_refuses_to_resume_a_stage_started_otherwise(lines_folder, lines_model, tmp_path, monkeypatch,
+                                                           change, named):
+    """A stage's training checkpoint left by a build under another recipe is not resumed: resume
+    would keep the checkpoint's own length and model and quietly train another stage than the recipe's."""
+    first = lines_model_stage(lines_model)
+    tiny = {"odmo": {**first, "val_every": 0, "threads": 1, **change}}
+    monkeypatch.setitem(ship.RECIPES, str(lines_folder), tiny)
+    monkeypatch.setitem(checkpoint.SHIPPED, str(lines_folder),
+                        {"short": "lines", "odmo": "odmo_lines.pt", "classifier": "classifier_lines.pt"})
+    save_checkpoint(tmp_path / "odmo_lines.training.pt", load_checkpoint(lines_model))  # has its training state
+    monkeypatch.setattr(ship, "train_odmo", lambda *a, **kw: pytest.fail("trained"))
+    with pytest.raises(UserError, match=f"odmo_lines.training.pt was trained with other settings.*{named}"):
+        ship.build(str(lines_folder), None, tmp_path, skip_classifier=True, say=lambda m: None)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["odmo_lines.training.pt"]
+
+
 def test_build_chains_a_third_stage(lines_folder, tmp_path, monkeypatch):
     """Each later stage starts from the previous stage's compact file; the shipped file's init names
     the chain and the stage files are removed at the end."""

@@ -6,6 +6,7 @@ the parser with one line and exit 2, before any data is read.
 
 from __future__ import annotations
 
+import math
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, Optional
@@ -149,13 +150,13 @@ def train_odmo_cmd(
         raise UserError(f"--motion-hidden must be a positive number of units, got {motion_hidden}")
     scales = {"sigma2": sigma2, "recon_weight": recon_weight}  # ODMOConfig fields, given as --sigma2, --recon-weight
     for key, value in scales.items():
-        if value is not None and not value > 0:
-            raise UserError(f"--{key.replace('_', '-')} must be a positive number, got {value}")
+        if value is not None and not 0 < value < math.inf:  # nan fails every comparison
+            raise UserError(f"--{key.replace('_', '-')} must be a finite number > 0, got {value}")
     for flag, value in (("--vel-weight", vel_weight), ("--energy-weight", energy_weight),
                         ("--free-energy-weight", free_energy_weight), ("--height-weight", height_weight),
                         ("--mix-energy-weight", mix_energy_weight)):
-        if value is not None and value < 0:
-            raise UserError(f"{flag} must not be negative, got {value}")
+        if value is not None and not 0 <= value < math.inf:
+            raise UserError(f"{flag} must be a finite number >= 0, got {value}")
     scales.update(vel_weight=vel_weight, energy_weight=energy_weight, free_energy_weight=free_energy_weight,
                   height_weight=height_weight, mix_energy_weight=mix_energy_weight)
     overrides = {"use_es": "es" not in (ablate or []), "use_traj": "traj" not in (ablate or []),

@@ -38,7 +38,7 @@ import signal
 import threading
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Callable
 
@@ -75,6 +75,10 @@ class LoopConfig(Config):
     threads: int = 0  # torch intra-op threads while training; 0 leaves torch's default
 
     def __post_init__(self):
+        for f in fields(self):  # nan passes every `x < bound` check written above this call
+            value = getattr(self, f.name)
+            if isinstance(value, float) and not math.isfinite(value):
+                raise UserError(f"--{f.name.replace('_', '-')} must be a finite number, got {value}")
         if not 0 <= self.val_fraction < 1:
             raise UserError(f"validation fraction must be in [0, 1), got {self.val_fraction}")
         if self.split_seed < -1:
