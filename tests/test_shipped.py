@@ -218,11 +218,7 @@ def test_unmet_bars_names_each_miss():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("short, dataset", [
-    pytest.param("humanact12", "humanact12", marks=pytest.mark.xfail(strict=True, reason=(
-        "the new defaults and eight stages without teacher forcing, the last one the pose decoder alone, widened "
-        "to 256 units, about the root (2026-12-06), the root on the trajectory: FID 0.057, every action >= 85 "
-        "(walk 89.0), Diversity, Multimodality 1.55 (real 1.57), speed 0.96, amplitude 0.93 and dist_e 0.0031 "
-        "meet their bars; Acc 94.62 does not"))),
+    ("humanact12", "humanact12"),
     pytest.param("cmu", "cmu_mocap", marks=pytest.mark.xfail(strict=True, reason=(
         "the new defaults (2026-12-02), a 40-epoch L_height stage and three 330-epoch pose-decoder stages "
         "(2026-12-04), the root on the trajectory: FID 0.483, speed 0.93, amplitude 0.91, Diversity, Multimodality "

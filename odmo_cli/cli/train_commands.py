@@ -380,7 +380,7 @@ def ship_cmd(
     """Rebuild the shipped models of a dataset from scratch with its recipe: the evaluation classifier
     (real clips, cosine-decayed Adam), then ODMO (Adam from 3x the paper's rate, cosine decay, teacher
     forcing decayed over the first half of the epochs, 2 threads; on HumanAct12 then eight stages without
-    teacher forcing, the last one the pose decoder alone, widened), then compact files (float16, the
+    teacher forcing, the last two the pose decoder alone, widened), then compact files (float16, the
     largest layer as int8 rows). Run it again after an interruption to continue where it stopped. The
     recipes' numbers: docs/training.md."""
     from odmo_cli.ship import build, recipe_name, total_epochs
