@@ -8,6 +8,7 @@ dataclass's business to turn back (its `__post_init__`).
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, fields
 from typing import TypeVar
 
@@ -20,6 +21,16 @@ def _plain(value):
     if isinstance(value, dict):
         return {k: _plain(v) for k, v in value.items()}
     return value
+
+
+def non_finite_field(config) -> tuple[str, float] | None:
+    """The first float field of a config dataclass that is nan or infinite, as (name, value), or None.
+    A config checks this before its bounds: nan passes every `x < bound` and `x > bound` check."""
+    for f in fields(config):
+        value = getattr(config, f.name)
+        if isinstance(value, float) and not math.isfinite(value):
+            return f.name, value
+    return None
 
 
 class Config:

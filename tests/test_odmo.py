@@ -111,6 +111,18 @@ def test_trajectory_loss_position_vs_velocity_known_values():
         tiny_config(sigma2=0.0)
 
 
+@pytest.mark.parametrize("name, value", [("sigma2", float("nan")), ("recon_weight", float("inf")),
+                                         ("energy_weight", float("nan")), ("height_weight", float("-inf")),
+                                         ("alpha", float("nan"))])
+def test_config_refuses_nan_and_inf_however_it_is_built(name, value):
+    # nan passes every `x < 0` check; a recipe's "model" values and a checkpoint's config reach
+    # ODMOConfig through from_dict, not through the CLI's own checks
+    with pytest.raises(ValueError, match=f"^{name} must be a finite number, got {value}$"):
+        ODMOConfig.from_dict({**ODMOConfig().to_dict(), name: value})
+    with pytest.raises(ValueError, match=f"^{name} must be a finite number"):
+        tiny_config(**{name: value})
+
+
 def test_ablation_switches_change_the_total():
     cfg = tiny_config()
     terms = {"mre": torch.tensor(1.0), "es": torch.tensor(2.0), "vae": torch.tensor(3.0),

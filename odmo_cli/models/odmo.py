@@ -12,7 +12,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from odmo_cli.config import Config
+from odmo_cli.config import Config, non_finite_field
 
 
 ROOTS = ("trajectory", "decoder", "ground")  # ODMOConfig.root
@@ -94,6 +94,8 @@ class ODMOConfig(Config):
     pose_loss: str = "world"
 
     def __post_init__(self):
+        if bad := non_finite_field(self):
+            raise ValueError(f"{bad[0]} must be a finite number, got {bad[1]}")
         if self.traj_loss not in ("position", "velocity"):
             raise ValueError(f"traj_loss must be position or velocity, got {self.traj_loss!r}")
         if self.root not in ROOTS:

@@ -38,7 +38,7 @@ import signal
 import threading
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -47,7 +47,7 @@ import torch
 
 from odmo_cli.checkpoint import (FORMAT_VERSION, cpu_tensors, dataset_description, load_checkpoint, restore_rng,
                                  rng_state, save_checkpoint)
-from odmo_cli.config import Config
+from odmo_cli.config import Config, non_finite_field
 from odmo_cli.data.dataset import split_indices
 from odmo_cli.data.readers import ClipSet
 from odmo_cli.device import generator
@@ -75,10 +75,8 @@ class LoopConfig(Config):
     threads: int = 0  # torch intra-op threads while training; 0 leaves torch's default
 
     def __post_init__(self):
-        for f in fields(self):  # nan passes every `x < bound` check written above this call
-            value = getattr(self, f.name)
-            if isinstance(value, float) and not math.isfinite(value):
-                raise UserError(f"--{f.name.replace('_', '-')} must be a finite number, got {value}")
+        if bad := non_finite_field(self):
+            raise UserError(f"--{bad[0].replace('_', '-')} must be a finite number, got {bad[1]}")
         if not 0 <= self.val_fraction < 1:
             raise UserError(f"validation fraction must be in [0, 1), got {self.val_fraction}")
         if self.split_seed < -1:
