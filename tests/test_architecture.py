@@ -1,5 +1,6 @@
 """The layout the guide asks for, checked from the source: the import graph points one way
-(docs/architecture.md), the docs link only to files that ship, and nothing points at DESIGN.md."""
+(docs/architecture.md), the docs link only to files that ship and to headings that exist, and nothing
+points at DESIGN.md."""
 
 from __future__ import annotations
 
@@ -123,6 +124,44 @@ def test_relative_links_resolve_to_files_in_the_repository(page):
             continue  # a web address or an anchor on the page itself
         path = (page.parent / target.split("#")[0]).resolve()
         if not path.exists() or REPO not in path.parents:
+            missing.append(target)
+    assert missing == []
+
+
+FENCE = re.compile(r"^```.*?^```", re.S | re.M)
+
+
+def heading_anchors(page: Path) -> set[str]:
+    """The anchors GitHub gives a page's headings: lower case, punctuation but - and _ dropped,
+    spaces as -, a repeated one suffixed -1, -2, ... (headings inside code blocks are not headings)."""
+    anchors: set[str] = set()
+    for title in re.findall(r"^#+[ \t]+(.+?)[ \t]*$", FENCE.sub("", page.read_text()), re.M):
+        slug = re.sub(r"[^\w\- ]", "", title.lower()).replace(" ", "-")
+        n, anchor = 0, slug
+        while anchor in anchors:
+            n += 1
+            anchor = f"{slug}-{n}"
+        anchors.add(anchor)
+    return anchors
+
+
+def test_heading_anchors_follow_githubs_rule(tmp_path):
+    page = tmp_path / "p.md"
+    page.write_text("# Stage 9 now: a wider decoder (shipped; 2026-12-06)\n## Mode discovery\n## Mode discovery\n"
+                    "```sh\n# a comment, not a heading\n```\n### L_energy, `odmo eval`\n")
+    assert heading_anchors(page) == {"stage-9-now-a-wider-decoder-shipped-2026-12-06", "mode-discovery",
+                                     "mode-discovery-1", "l_energy-odmo-eval"}
+
+
+@pytest.mark.parametrize("page", DOCS, ids=lambda p: p.name)
+def test_links_to_a_heading_name_one_that_exists(page):
+    missing = []
+    for target in LINK.findall(FENCE.sub("", page.read_text())):
+        if re.match(r"^[a-z]+:", target) or "#" not in target:
+            continue
+        file, anchor = target.split("#", 1)
+        linked = (page.parent / file).resolve() if file else page
+        if linked.suffix == ".md" and linked.exists() and anchor not in heading_anchors(linked):
             missing.append(target)
     assert missing == []
 
