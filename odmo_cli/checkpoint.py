@@ -307,11 +307,21 @@ def load_odmo(spec: str | Path | None, device: torch.device | None = None, root:
     return _odmo_from(path, ckpt, device, root)
 
 
+def odmo_config(path: str | Path, config: dict) -> ODMOConfig:
+    """The ODMOConfig a file's config describes; UserError naming the file if a value is invalid (a file
+    written by hand or damaged: a nan loss weight, an unknown readout)."""
+    try:
+        return ODMOConfig.from_dict(config)
+    except ValueError as e:
+        raise UserError(f"{path} holds an invalid ODMO config: {e}") from None
+
+
 def _odmo_from(path: Path, ckpt: dict, device: torch.device | None = None, root: str | None = None) -> LoadedODMO:
     if "latent_bank" not in ckpt:
         raise UserError(f"{path} has no latent bank: its training did not finish (resume it to the end)")
+    cfg = odmo_config(path, ckpt["config"])
     with torch.device("meta"):  # no random initialisation: every weight comes from the file
-        model = ODMO(ODMOConfig.from_dict(ckpt["config"]))
+        model = ODMO(cfg)
     state = {k: v.float() if v.is_floating_point() else v for k, v in float_state(ckpt).items()}
     model.load_state_dict(state, assign=True)
     model.eval()

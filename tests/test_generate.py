@@ -250,6 +250,18 @@ def test_sample_without_model_or_with_a_bad_one(tmp_path):
     assert not (tmp_path / "x.npz").exists()
 
 
+def test_sample_refuses_a_checkpoint_whose_config_is_invalid(lines_model, tmp_path):
+    ckpt = torch.load(lines_model, weights_only=True)
+    ckpt["config"]["sigma2"] = float("nan")  # a damaged or hand-edited file: nan passes `x > 0` checks
+    bad = tmp_path / "bad.pt"
+    torch.save(ckpt, bad)
+    out = tmp_path / "s.npz"
+    res = CliRunner().invoke(app, ["sample", "--model", str(bad), "--action", "glide", "--out", str(out)])
+    assert res.exit_code == 2, res.output
+    assert "bad.pt holds an invalid ODMO config: sigma2 must be a finite number, got nan" in res.stderr
+    assert res.stderr.count("\n") == 1 and "Traceback" not in res.stderr and not out.exists()
+
+
 def test_lazy_save_streams_the_same_bytes(lines_model, tmp_path):
     loaded = load_odmo(lines_model)
     eager = sample(loaded, ["all"], 7, seed=2, end="0.2,0.1")

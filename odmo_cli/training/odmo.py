@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from odmo_cli import metrics
-from odmo_cli.checkpoint import dataset_description, float_state, load_checkpoint
+from odmo_cli.checkpoint import dataset_description, float_state, load_checkpoint, odmo_config
 from odmo_cli.data.dataset import MotionDataset, crops_from_start, mirror_map, mirror_rows, pair_indices
 from odmo_cli.data.readers import ClipSet
 from odmo_cli.device import model_device
@@ -351,7 +351,7 @@ def train_odmo(clips: ClipSet, tc: TrainConfig, out: Path, overrides: dict | Non
             ckpt = load_checkpoint(init)
             if ckpt.get("kind") != "odmo":
                 raise UserError(f"--init {init} holds a {ckpt.get('kind')!r} model, not odmo")
-            kept = ODMOConfig.from_dict(ckpt.get("config", {}))
+            kept = odmo_config(f"--init {init}", ckpt.get("config", {}))
             cfg = ODMOConfig.from_dict({**ckpt.get("config", {}), **(overrides or {})})
             if cfg.pose_frame != kept.pose_frame:  # same shapes, other meaning: would load silently
                 raise UserError(f"--init {Path(init).name} draws poses in the {kept.pose_frame} frame; "
