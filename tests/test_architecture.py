@@ -5,6 +5,7 @@ points at DESIGN.md."""
 from __future__ import annotations
 
 import ast
+import functools
 import re
 from pathlib import Path
 
@@ -131,7 +132,8 @@ def test_relative_links_resolve_to_files_in_the_repository(page):
 FENCE = re.compile(r"^```.*?^```", re.S | re.M)
 
 
-def heading_anchors(page: Path) -> set[str]:
+@functools.lru_cache(maxsize=None)  # a page is linked to many times: parse its headings once
+def heading_anchors(page: Path) -> frozenset[str]:
     """The anchors GitHub gives a page's headings: lower case, punctuation but - and _ dropped,
     spaces as -, a repeated one suffixed -1, -2, ... (headings inside code blocks are not headings)."""
     anchors: set[str] = set()
@@ -142,7 +144,7 @@ def heading_anchors(page: Path) -> set[str]:
             n += 1
             anchor = f"{slug}-{n}"
         anchors.add(anchor)
-    return anchors
+    return frozenset(anchors)
 
 
 def test_heading_anchors_follow_githubs_rule(tmp_path):
