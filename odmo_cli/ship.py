@@ -56,7 +56,10 @@ from odmo_cli.training.odmo import TrainConfig, train_odmo
 # rate decayed 1e-3 -> 3e-5, the preset's L_energy (stage 3: its decoder had had 2.6 k steps where the
 # release trains over 20 k; kept by a rule on the validation split's body error about the root); then
 # that stage twice more at 3e-3 -> 3e-5 (stages 4 and 5, kept together by a rule set before they ran: the
-# body error on the training clips 10% under stage 3's, the validation split's no worse than 2% over it).
+# body error on the training clips 10% under stage 3's, the validation split's no worse than 2% over it);
+# then 200 epochs of that stage on each training clip's first crop, with the pose loss about the root
+# (stage 6, "CF6B": the crops sampling draws its codes from, and a loss that leaves their root paths to
+# the trajectory generator; kept by a rule on the validation split's body error set before it ran).
 # Classifier settings are those of the measured classifier runs (docs/evaluation.md).
 _FREE_STAGE = {"epochs": 100, "lr": 3e-4, "lr_final": 3e-4, "tf_start": 0.0, "tf_end": 0.0, "tf_epochs": 1,
                "free_from": 0, "threads": 2}
@@ -96,6 +99,7 @@ RECIPES = {
         "odmo_stage2": _HEIGHT_STAGE,
         "odmo_stage3": _DECODER_STAGE,
         **{f"odmo_stage{n}": _FAST_DECODER_STAGE for n in (4, 5)},
+        "odmo_stage6": {**_FAST_DECODER_STAGE, "epochs": 200, "crops": "first", "model": {"pose_loss": "body"}},
         "classifier": {"epochs": 100, "speed": 1.0, "threads": 1},
     },
 }
