@@ -682,7 +682,8 @@ def test_init_starts_a_stage_from_a_finished_model(demo_clips, tmp_path):
     train_odmo(demo_clips, tc, second, {"free_energy_weight": 1.0}, init=first)
     ckpt = torch.load(second, weights_only=True)
     assert ckpt["config"] == {**start["config"], "free_energy_weight": 1.0}  # not the preset's scales
-    assert ckpt["init"] == {"source": "first.pt", "epoch": 2, "train_config": start["train_config"]}
+    assert ckpt["init"] == {"source": "first.pt", "epoch": 2, "train_config": start["train_config"],
+                            "config": start["config"]}
     assert ckpt["epoch"] == 1 and ckpt["train_config"]["tf_end"] == 0.0
     moved = max(float((ckpt["state_dict"][k] - v).abs().max()) for k, v in start["state_dict"].items()
                 if v.is_floating_point() and "running" not in k and "num_batches" not in k)

@@ -187,6 +187,8 @@ def test_build_chains_a_third_stage(lines_folder, tmp_path, monkeypatch):
     # a stage's seed_offset moves that stage's seed only
     assert ckpt["train_config"]["seed"] == 2 and ckpt["init"]["train_config"]["seed"] == 0
     assert ckpt["init"]["init"]["source"] == "odmo_lines.stage1.pt" and ckpt["init"]["init"]["epoch"] == 2
+    # each earlier stage's model config is kept beside its training config (stage 2's: the preset's)
+    assert ckpt["init"]["config"]["energy_weight"] == 2.0 and ckpt["init"]["init"]["config"] == ckpt["init"]["config"]
     assert ship.total_epochs(str(lines_folder)) == 4
 
 

@@ -213,8 +213,9 @@ class ODMOTrainer(Trainer):
             self.model.load_state_dict(state)
         except RuntimeError as e:  # a size or a key that differs (an override of the architecture)
             raise UserError(f"--init {source}'s weights do not fit this model: {str(e).splitlines()[-1].strip()}") from None
+        # the model config too, so that every stage's model values can be checked (files before 2026-12-06 lack it)
         self.init = {"source": source, "epoch": int(ckpt["epoch"]), "train_config": ckpt["train_config"],
-                     **({"init": ckpt["init"]} if ckpt.get("init") else {})}  # the stages before it, if any
+                     "config": ckpt["config"], **({"init": ckpt["init"]} if ckpt.get("init") else {})}
 
     def extra_state(self) -> dict:
         return {"init": self.init} if self.init else {}
