@@ -115,21 +115,30 @@ def test_no_import_cycles():
 
 DOCS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
 LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")
+FENCE = re.compile(r"^```.*?^```", re.S | re.M)
+
+
+def local_links(page: Path) -> list[str]:
+    """The link targets of a page outside its code blocks, web addresses (scheme:...) left out."""
+    return [t for t in LINK.findall(FENCE.sub("", page.read_text())) if not re.match(r"^[a-z]+:", t)]
+
+
+def test_local_links_skip_web_addresses_and_code_blocks(tmp_path):
+    page = tmp_path / "p.md"
+    page.write_text("[a](docs/x.md) [b](https://example.org/y) [c](#here)\n```md\n[d](z.md)\n```\n[e](mailto:me)\n")
+    assert local_links(page) == ["docs/x.md", "#here"]
 
 
 @pytest.mark.parametrize("page", DOCS, ids=lambda p: p.name)
 def test_relative_links_resolve_to_files_in_the_repository(page):
     missing = []
-    for target in LINK.findall(page.read_text()):
-        if re.match(r"^[a-z]+:", target) or target.startswith("#"):
-            continue  # a web address or an anchor on the page itself
+    for target in local_links(page):
+        if target.startswith("#"):
+            continue  # an anchor on the page itself
         path = (page.parent / target.split("#")[0]).resolve()
         if not path.exists() or REPO not in path.parents:
             missing.append(target)
     assert missing == []
-
-
-FENCE = re.compile(r"^```.*?^```", re.S | re.M)
 
 
 @functools.lru_cache(maxsize=None)  # a page is linked to many times: parse its headings once
@@ -158,8 +167,8 @@ def test_heading_anchors_follow_githubs_rule(tmp_path):
 @pytest.mark.parametrize("page", DOCS, ids=lambda p: p.name)
 def test_links_to_a_heading_name_one_that_exists(page):
     missing = []
-    for target in LINK.findall(FENCE.sub("", page.read_text())):
-        if re.match(r"^[a-z]+:", target) or "#" not in target:
+    for target in local_links(page):
+        if "#" not in target:
             continue
         file, anchor = target.split("#", 1)
         linked = (page.parent / file).resolve() if file else page
