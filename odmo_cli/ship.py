@@ -197,16 +197,25 @@ def stage_settings(stage: dict, seed: int) -> dict:
     return {**settings, "seed": seed + stage.get("seed_offset", 0)}
 
 
+def stage_differences(train_config: dict, config: dict | None, stage: dict, seed: int) -> list[str]:
+    """How a stage's recorded training config and model config differ from the recipe's stage in a build
+    with `seed` ("lr 0.001, not 0.003"); `config` None: not recorded (a stage before 2026-12-06 in a
+    file's init chain), so its model values are not compared. Threads are not compared: they change
+    the speed, not the run."""
+    wanted = {k: v for k, v in stage_settings(stage, seed).items() if k != "threads"}
+    differ = [f"{k} {train_config.get(k)!r}, not {v!r}" for k, v in wanted.items() if train_config.get(k) != v]
+    if config is not None:
+        differ += [f"{k} {config.get(k)!r}, not {v!r}" for k, v in stage.get("model", {}).items() if config.get(k) != v]
+    return differ
+
+
 def _check_settings(path: Path, stage: dict, seed: int) -> None:
     """A UserError when a stage file beside the output, finished or to be resumed, was trained with
     other settings or model values than the recipe's stage (a build under an older recipe or another
     --seed): the build would go on from the wrong weights, or resume would keep the file's own
-    settings (training.loop: Trainer.resumed). Threads are not compared: they change the speed, not the run."""
+    settings (training.loop: Trainer.resumed)."""
     ckpt = load_checkpoint(path)
-    tc, cfg = ckpt.get("train_config", {}), ckpt.get("config", {})
-    wanted = {k: v for k, v in stage_settings(stage, seed).items() if k != "threads"}
-    differ = [f"{k} {tc.get(k)!r}, not {v!r}" for k, v in wanted.items() if tc.get(k) != v]
-    differ += [f"{k} {cfg.get(k)!r}, not {v!r}" for k, v in stage.get("model", {}).items() if cfg.get(k) != v]
+    differ = stage_differences(ckpt.get("train_config", {}), ckpt.get("config", {}), stage, seed)
     if differ:
         raise UserError(f"{path} was trained with other settings than this recipe's stage ({'; '.join(differ)}); "
                         "remove it to train that stage again, or build into another --out folder")

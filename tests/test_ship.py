@@ -167,6 +167,15 @@ def test_build_refuses_to_resume_a_stage_started_otherwise(lines_folder, lines_m
     assert sorted(p.name for p in tmp_path.iterdir()) == ["odmo_lines.training.pt"]
 
 
+def test_stage_differences_names_each_setting_and_skips_unrecorded_model_values():
+    stage = {"epochs": 2, "lr": 1e-3, "threads": 2, "seed_offset": 1, "model": {"pose_loss": "body"}}
+    recorded = {"epochs": 2, "lr": 1e-3, "seed": 1, "threads": 1}  # threads differ: not compared
+    assert ship.stage_differences(recorded, {"pose_loss": "body"}, stage, 0) == []
+    assert ship.stage_differences(recorded, None, stage, 0) == []  # model values not recorded
+    assert ship.stage_differences(recorded, {"pose_loss": "world"}, stage, 0) == ["pose_loss 'world', not 'body'"]
+    assert ship.stage_differences({**recorded, "seed": 0}, {}, stage, 0) == ["seed 0, not 1", "pose_loss None, not 'body'"]
+
+
 def test_build_chains_a_third_stage(lines_folder, tmp_path, monkeypatch):
     """Each later stage starts from the previous stage's compact file; the shipped file's init names
     the chain and the stage files are removed at the end."""

@@ -128,9 +128,10 @@ def test_shipped_odmo_loads_safely_and_describes_its_data(short, dataset):
 @pytest.mark.parametrize("short, dataset", SHIPPED_ODMO)
 def test_shipped_odmo_was_trained_by_its_recipe(short, dataset):
     """The file's chain of stages (each stage's train config, newest first, in `init`) is the
-    recipe's, stage by stage, and the last stage's model values are the recipe's."""
+    recipe's, stage by stage (ship.stage_differences, as a build checks a stage file), with each
+    stage's model values where recorded and always the last stage's."""
     from odmo_cli.checkpoint import shipped_file
-    from odmo_cli.ship import RECIPES, _stages, stage_settings
+    from odmo_cli.ship import RECIPES, _stages, stage_differences
 
     ckpt = torch.load(shipped_file(short), weights_only=True)
     chain, node = [ckpt], ckpt.get("init")
@@ -142,11 +143,9 @@ def test_shipped_odmo_was_trained_by_its_recipe(short, dataset):
     assert len(chain) == len(stages)
     seed = chain[-1]["train_config"]["seed"]
     for entry, stage in zip(reversed(chain), stages):
-        # every setting of the stage, its seed the first stage's plus the stage's offset
-        wanted = {k: v for k, v in stage_settings(recipe[stage], seed).items() if k != "threads"}
-        assert {k: entry["train_config"][k] for k in wanted} == wanted, stage
-        if "config" in entry:  # the stage's model values (earlier stages' files record them since 2026-12-06)
-            assert {k: entry["config"][k] for k in recipe[stage].get("model", {})} == recipe[stage].get("model", {}), stage
+        # every setting of the stage, its seed the first stage's plus the stage's offset, and its model
+        # values where recorded (earlier stages' entries record them since 2026-12-06)
+        assert stage_differences(entry["train_config"], entry.get("config"), recipe[stage], seed) == [], stage
     assert "config" in ckpt, "the shipped file's own model config"
 
 
