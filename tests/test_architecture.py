@@ -16,7 +16,7 @@ PACKAGE = REPO / "odmo_cli"
 
 # Floors from the bottom up (docs/architecture.md): a module may import its own floor and those below.
 FLOORS = [
-    ["errors", "config", "parallel", "device", "io", "metrics"],
+    ["errors", "config", "parallel", "device", "io", "metrics", "plausibility"],
     ["geometry"],
     ["formats", "data"],
     ["models"],

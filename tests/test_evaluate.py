@@ -42,8 +42,11 @@ def test_protocol_reports_every_metric_with_ci(lines_model, lines_folder, lines_
     assert [r["name"] for r in report.rows] == ["Real motions", "lines.pt"]
     real, model = report.rows
     for row in report.rows:
-        # rigid bodies: no motion about the root to compare with, so no speed or amplitude ratio
-        assert set(row["metrics"]) == {"accuracy", "fid", "diversity", "multimodality", "inception", "n_apd", "bone_std"}
+        # rigid bodies: no motion about the root to compare with, so no speed or amplitude ratio; roots on
+        # the ground plane, so no vertical root speed either
+        assert set(row["metrics"]) == {"accuracy", "fid", "diversity", "multimodality", "inception", "n_apd", "bone_std",
+                                       "foot_skate", "foot_contact", "kinetic_fd", "bone_var", "bone_var_median",
+                                       "root_ground", "coverage", "density"}
         assert row["speed_by_action"] == {} and row["amplitude_by_action"] == {}
         assert len(row["per_repeat"]) == 3
         for mean, half in row["metrics"].values():

@@ -17,6 +17,11 @@ METRIC_HEADS = {"accuracy": "Acc ↑", "fid": "FID ↓", "diversity": "Div →",
                 "inception": "IS ↑", "n_apd": "n-APD", "bone_std": "bone std ↓", "speed": "speed →1",
                 "amplitude": "amplitude →1"}
 NARROW = ("accuracy", "fid", "diversity", "multimodality")  # the papers' four; --wide adds the rest
+# what an animator sees, with no trained network (odmo_cli.plausibility; docs/evaluation.md)
+PLAUSIBLE_HEADS = {"foot_skate": "skate ↓", "foot_contact": "contact", "root_up": "root up",
+                   "root_ground": "root gnd", "kinetic_fd": "FD_k ↓", "coverage": "cover ↑",
+                   "density": "density", "bone_var": "bone p95"}
+DIGITS = {"fid": 3, "bone_std": 3, "foot_skate": 3, "foot_contact": 2, "bone_var": 3, "kinetic_fd": 1}
 
 
 def evaluate(
@@ -31,13 +36,15 @@ def evaluate(
     samples: Annotated[Optional[list[Path]], typer.Option("--samples", help="Also score a samples .npz made elsewhere (repeatable; its dataset is the file's unless --dataset).")] = None,
     customization: Annotated[bool, typer.Option("--customization", help="Also the end-point protocol (§4.4).", metavar="")] = False,
     held_out: Annotated[bool, typer.Option("--held-out", help="Also a row for the real clips the classifier never trained on (odmo classifiers).", metavar="")] = False,
-    by_action: Annotated[bool, typer.Option("--by-action", help="Also print each row's accuracy, speed and amplitude ratios per action.", metavar="")] = False,
+    by_action: Annotated[bool, typer.Option("--by-action", help="Also print each row's accuracy, speed and amplitude ratios, foot skating, root speeds and coverage per action.", metavar="")] = False,
     out: Annotated[Optional[Path], typer.Option("--out", help="Also write the full report (every repeat) as JSON here.")] = None,
     root: RootOpt = None, data: DataOpt = None, device: DeviceOpt = "cpu", seed: SeedOpt = 0, as_json: JsonOpt = False,
     wide: WideOpt = False,
 ):
     """The evaluation protocol: Acc, FID, Diversity, Multimodality, n-APD, bone std, and the speed and
-    amplitude of the body's motion over the real motions' (mean ± 95% CI)."""
+    amplitude of the body's motion over the real motions' (mean ± 95% CI); then what an animator sees,
+    with no trained network: foot skating and contact, the root's bounce and glide, a Fréchet distance
+    of kinetic features, coverage of each action's variety, and bone-length variation."""
     from odmo_cli.evaluation.protocol import EvalConfig, run_evaluation
     from odmo_cli.io import atomic_path
 
@@ -58,13 +65,10 @@ def evaluate(
         return print_json(report.__dict__)
     table = Table(title=f"{report.dataset}: {report.config['repeats']} repeats x {report.config['per_action']} "
                         f"per action, classifier {Path(report.classifier).name} ({report.seconds:.0f} s)")
-    table.add_column("model")
     keys = list(METRIC_HEADS) if wide else list(NARROW)
-    for key in keys:
-        table.add_column(METRIC_HEADS[key], justify="right")
-    for row in report.rows:
-        table.add_row(row["name"], *(_cell(row, k) for k in keys))
-    console.print(table)
+    console.print(_metric_table(report.rows, {k: METRIC_HEADS[k] for k in keys}, table))
+    console.print(_metric_table(report.rows, PLAUSIBLE_HEADS, Table(
+        title="what an animator sees (no network; the real row is the floor)")))
     for row in report.rows:
         for why in row.get("not_available", []):
             console.print(f"{row['name']}: {why}", highlight=False, markup=False)
@@ -72,7 +76,10 @@ def evaluate(
         console.print("IS, n-APD, bone std, speed and amplitude ratios: --wide (all of it: --json)", style="dim")
     if by_action:
         for key, title, digits in (("by_action", "accuracy", 1), ("speed_by_action", "speed ratio", 2),
-                                   ("amplitude_by_action", "amplitude ratio", 2)):
+                                   ("amplitude_by_action", "amplitude ratio", 2),
+                                   ("foot_skate_by_action", "foot skate", 3), ("root_up_by_action", "root up ratio", 2),
+                                   ("root_ground_by_action", "root ground ratio", 2),
+                                   ("coverage_by_action", "coverage", 2)):
             console.print(_by_action_table(report.rows, key, title, digits))
     for c in report.customization:
         m = c["metrics"]
@@ -82,13 +89,23 @@ def evaluate(
         console.print(f"wrote {out}")
 
 
+def _metric_table(rows: list[dict], heads: dict[str, str], table: Table) -> Table:
+    table.add_column("model")
+    for head in heads.values():
+        table.add_column(head, justify="right")
+    for row in rows:
+        table.add_row(row["name"], *(_cell(row, k) for k in heads))
+    return table
+
+
 def _cell(row: dict, key: str) -> str:
     if key not in row["metrics"]:
         return "-"
     mean, half = row["metrics"][key]
     if mean != mean:  # NaN: not available for this row (see its note)
         return "n/a"
-    return f"{mean:.{3 if key in ('fid', 'bone_std') else 2}f} ±{half:.{3 if key in ('fid', 'bone_std') else 2}f}"
+    digits = DIGITS.get(key, 2)
+    return f"{mean:.{digits}f} ±{half:.{digits}f}"
 
 
 def _by_action_table(rows: list[dict], key: str, title: str, digits: int) -> Table:

@@ -188,6 +188,12 @@ def train_odmo_cmd(
     console.print(f"held-out reconstruction ({r['held_out_clips']} clips, no teacher forcing): "
                   f"mean joint error {r['held_out_mpjpe']:.3f}, end-point error {r['held_out_end_error']:.3f}, "
                   f"speed {r['held_out_speed']:.2f} and amplitude {r['held_out_amplitude']:.2f} of the real clips'")
+    console.print(f"as an animator sees it (held out, decodes against their clips): foot skate "
+                  f"{r.get('held_out_foot_skate', float('nan')):.3f} (the clips' own {r['held_out_real_foot_skate']:.3f}), "
+                  f"foot contact {r['held_out_foot_contact']:.2f} ({r['held_out_real_foot_contact']:.2f}), root speed "
+                  f"up {r.get('held_out_root_up', float('nan')):.2f} and on the ground "
+                  f"{r.get('held_out_root_ground', float('nan')):.2f} of the clips', FD_k {r['held_out_kinetic_fd']:.1f}, "
+                  f"bone variation p95 {r['held_out_bone_var']:.3f}")
     console.print(f"body about the root: error {r['held_out_body']:.3f} (each clip's action-mean body: "
                   f"{r['held_out_body_mean_pose']:.3f}); on the training clips {r['train_body']:.3f} "
                   f"({r['train_body_mean_pose']:.3f})")

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from odmo_cli import metrics
+from odmo_cli import metrics, plausibility
 from odmo_cli.checkpoint import SAMPLING, LoadedODMO, load_model, shipped_file
 from odmo_cli.data.dataset import crop_pad_shift, random_start
 from odmo_cli.data.locate import resolve
@@ -73,6 +73,9 @@ class RealSets:
     bone_std: list[float]
     speed: list[np.ndarray]  # repeats + 1 sets of (C*N,) body speeds (metrics.body_speed)
     amplitude: list[np.ndarray]  # the same for metrics.body_amplitude
+    plausible: list[dict] = field(default_factory=list)  # repeats + 1 sets of plausibility.measure
+    frame: plausibility.Frame | None = None  # up axis, feet, fps and leg length (measured on the first set)
+    scale: tuple | None = None  # the z-scoring of the kinetic features (plausibility.standardizer of the first set)
 
 
 def shipped_classifier(dataset: str) -> Path | None:
@@ -123,14 +126,17 @@ class SetStats:
     speed: np.ndarray  # (N,)
     amplitude: np.ndarray  # (N,)
     apd: dict  # {action: APD} for the actions with at least 2 motions
+    plausible: dict  # plausibility.measure of the motions
 
 
-def set_stats(motions: np.ndarray, labels: np.ndarray, classifier, parents, with_apd: bool = True) -> SetStats:
+def set_stats(motions: np.ndarray, labels: np.ndarray, classifier, parents, frame: plausibility.Frame,
+              with_apd: bool = True) -> SetStats:
     """The statistics in float64 (metrics converts block by block); n-APD only `with_apd`."""
     logits, feats = classifier.predict(motions)
     speed, amplitude = metrics.body_speed_and_amplitude(motions)
     return SetStats(logits, feats, labels, metrics.bone_length_consistency(motions, parents), speed, amplitude,
-                    metrics.class_apd(motions, labels, cap=APD_CAP) if with_apd else {})
+                    metrics.class_apd(motions, labels, cap=APD_CAP) if with_apd else {},
+                    plausibility.measure(motions, frame, parents))
 
 
 def real_sets(clips: ClipSet, classifier, cfg: EvalConfig) -> RealSets:
@@ -138,11 +144,13 @@ def real_sets(clips: ClipSet, classifier, cfg: EvalConfig) -> RealSets:
     n = cfg.n_for(clips.manifest.name)
     parents = clips.manifest.skeleton.parents
     crops = [real_crops(clips, n, rng) for _ in range(cfg.repeats + 1)]  # drawn in order from one rng
+    frame = plausibility.frame_for(clips.manifest.skeleton, clips.manifest.fps, crops[0][0])
     # n-APD compares generated sets with the first real set only
-    stats = list(parallel_map(lambda r: set_stats(*crops[r], classifier, parents, with_apd=r == 0),
+    stats = list(parallel_map(lambda r: set_stats(*crops[r], classifier, parents, frame, with_apd=r == 0),
                               range(len(crops)), cfg.n_workers))
     return RealSets([s.features for s in stats], crops[0][1], [s.logits for s in stats], stats[0].apd,
-                    [s.bone_std for s in stats], [s.speed for s in stats], [s.amplitude for s in stats])
+                    [s.bone_std for s in stats], [s.speed for s in stats], [s.amplitude for s in stats],
+                    [s.plausible for s in stats], frame, plausibility.standardizer(stats[0].plausible["kinetic"]))
 
 
 def damping_metrics(speed: np.ndarray, amplitude: np.ndarray, labels: np.ndarray, real: RealSets) -> dict[str, float]:
@@ -159,8 +167,9 @@ def damping_metrics(speed: np.ndarray, amplitude: np.ndarray, labels: np.ndarray
 
 
 def set_metrics(s: SetStats, real_feats: np.ndarray, rng: np.random.Generator, real: RealSets,
-                generated: bool = True) -> dict[str, float]:
+                generated: bool = True, ref: int = 0) -> dict[str, float]:
     """Every metric of one set against the real sets; `rng` draws the Diversity and Multimodality pairs.
+    The plausibility measures compare with real set `ref` (the one whose features are `real_feats`).
     An action with too few motions for a per-action figure leaves its key out (see not_available)."""
     pred = s.logits.argmax(axis=1)  # (N,)
     pairs = len(s.labels) >= 2  # FID and Diversity need two motions
@@ -176,6 +185,7 @@ def set_metrics(s: SetStats, real_feats: np.ndarray, rng: np.random.Generator, r
     out["n_apd"] = metrics.apd_ratio(s.apd, real.apd) if generated and s.apd else (1.0 if not generated else float("nan"))
     out["bone_std"] = s.bone_std
     out.update(damping_metrics(s.speed, s.amplitude, s.labels, real))
+    out.update(plausibility.compare(s.plausible, s.labels, real.plausible[ref], real.labels, real.scale))
     return out
 
 
@@ -209,13 +219,14 @@ def _softmax(logits: np.ndarray) -> np.ndarray:
     return e / e.sum(1, keepdims=True)
 
 
-BY_ACTION = {"accuracy": "by_action", "speed": "speed_by_action", "amplitude": "amplitude_by_action"}
+BY_ACTION = {"accuracy": "by_action", "speed": "speed_by_action", "amplitude": "amplitude_by_action",
+             **{k: f"{k}_by_action" for k in plausibility.PER_ACTION}}
 
 
 def split_by_action(row: dict, actions) -> None:
-    """Move the per-action figures ("accuracy/<index>", "speed/<index>", "amplitude/<index>") of
-    row["metrics"] and of each of row["per_repeat"] into dicts keyed by action name beside them:
-    "by_action" (accuracy), "speed_by_action" and "amplitude_by_action"."""
+    """Move the per-action figures ("accuracy/<index>", "speed/<index>", ...) of row["metrics"] and of
+    each of row["per_repeat"] into dicts keyed by action name beside them: "by_action" (accuracy),
+    "<metric>_by_action" for the others (BY_ACTION)."""
     for part in [row] + row.get("per_repeat", []):
         values = part["metrics"] if part is row else part
         for metric, home in BY_ACTION.items():
@@ -236,7 +247,7 @@ def evaluate_real(real: RealSets, cfg: EvalConfig) -> dict:
     rows = []
     for r in range(cfg.repeats):
         s = SetStats(real.logits[r + 1], real.features[r + 1], real.labels, real.bone_std[r + 1],
-                     real.speed[r + 1], real.amplitude[r + 1], {})
+                     real.speed[r + 1], real.amplitude[r + 1], {}, real.plausible[r + 1])
         rows.append(set_metrics(s, real.features[0], rng, real, generated=False))
     return {"name": "Real motions", "metrics": summarize(rows), "per_repeat": rows}
 
@@ -249,7 +260,8 @@ def evaluate_held_out(clips: ClipSet, val: np.ndarray, classifier, real: RealSet
     rows = []
     for r in range(cfg.repeats):  # in order: the crops of set r + 1 are drawn after set r's metrics
         motions, labels = real_crops(held, n, rng)  # (C*n, T, J, 3)
-        rows.append(set_metrics(set_stats(motions, labels, classifier, parents), real.features[r + 1], rng, real))
+        rows.append(set_metrics(set_stats(motions, labels, classifier, parents, real.frame), real.features[r + 1],
+                                rng, real, ref=r + 1))
     return {"name": "Real, classifier's held-out clips", "metrics": summarize(rows), "per_repeat": rows,
             "clips": int(len(val))}
 
@@ -265,11 +277,11 @@ def evaluate_model(loaded, classifier, real: RealSets, cfg: EvalConfig, progress
 
     def one_set(seed: int) -> SetStats:
         batch = sample(loaded, ["all"], n, seed=seed, sampling=sampling)
-        return set_stats(batch.motions, batch.labels, classifier, parents)
+        return set_stats(batch.motions, batch.labels, classifier, parents, real.frame)
 
     rows, start = [], time.perf_counter()
     for r, stats in enumerate(parallel_map(one_set, seeds, cfg.n_workers)):
-        rows.append(set_metrics(stats, real.features[r + 1], rng, real))
+        rows.append(set_metrics(stats, real.features[r + 1], rng, real, ref=r + 1))
         if progress:
             progress(r + 1)
     conv = isinstance(loaded, LoadedODMO) and cfg.sampling != "mode-preserving"
@@ -309,8 +321,8 @@ def evaluate_samples(path: Path, classifier, real: RealSets, manifest, cfg: Eval
     """Motions produced elsewhere (a samples .npz) against the same real sets: one set, no CI.
     Figures an action has too few motions for are left out and said why (`not_available`)."""
     motions, labels = read_samples_for(path, classifier, manifest)
-    stats = set_stats(motions, labels, classifier, manifest.skeleton.parents)
-    row = set_metrics(stats, real.features[1], np.random.default_rng(cfg.seed), real)
+    stats = set_stats(motions, labels, classifier, manifest.skeleton.parents, real.frame)
+    row = set_metrics(stats, real.features[1], np.random.default_rng(cfg.seed), real, ref=1)
     return {"name": path.name, "metrics": {k: [v, 0.0] for k, v in row.items()}, "per_repeat": [row],
             "not_available": not_available(labels, list(manifest.action_names))}
 

@@ -18,6 +18,12 @@ class Skeleton:
     chains: tuple[tuple[int, ...], ...]
     up_axis: str  # "+y" or "-y": the direction of "up" in the dataset's own frame
     bvh_names: tuple[str, ...] | None = None  # the usual BVH names of the joints (None: use joint_names)
+    legs: tuple[tuple[int, int, int, int], ...] = ()  # (hip, knee, ankle, toe) of each leg
+
+    @property
+    def feet(self) -> tuple[int, ...]:
+        """The foot joints (ankle and toe of each leg): what touches the floor."""
+        return tuple(j for leg in self.legs for j in leg[2:])
 
     @property
     def n_joints(self) -> int:
@@ -114,17 +120,18 @@ SKELETONS: dict[str, Skeleton] = {
         "humanact12", _SMPL_NAMES,
         ((0, 1, 4, 7, 10), (0, 2, 5, 8, 11), (0, 3, 6, 9, 12, 15),
          (9, 13, 16, 18, 20, 22), (9, 14, 17, 19, 21, 23)),
-        up_axis="-y", bvh_names=tuple(_SMPL_BVH[n] for n in _SMPL_NAMES),
+        up_axis="-y", bvh_names=tuple(_SMPL_BVH[n] for n in _SMPL_NAMES), legs=((1, 4, 7, 10), (2, 5, 8, 11)),
     ),
     "cmu20": Skeleton(
         "cmu20", _CMU20_NAMES,
         ((0, 1, 2, 3), (0, 12, 13, 14, 15), (0, 16, 17, 18, 19), (1, 4, 5, 6, 7), (1, 8, 9, 10, 11)),
         up_axis="+y", bvh_names=tuple(_CMU20_BVH[n] for n in _CMU20_NAMES),
+        legs=((12, 13, 14, 15), (16, 17, 18, 19)),
     ),
     "uestc18": Skeleton(
         "uestc18", _UESTC18_NAMES,
         ((0, 12, 13, 14, 15), (0, 9, 10, 11, 16), (0, 1, 8, 17), (1, 5, 6, 7), (1, 2, 3, 4)),
-        up_axis="-y",
+        up_axis="-y", legs=((12, 13, 14, 15), (9, 10, 11, 16)),
     ),
 }
 

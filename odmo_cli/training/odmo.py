@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from odmo_cli import metrics
+from odmo_cli import metrics, plausibility
 from odmo_cli.checkpoint import dataset_description, float_state, load_checkpoint, odmo_config
 from odmo_cli.data.dataset import MotionDataset, crops_from_start, mirror_map, mirror_rows, pair_indices
 from odmo_cli.data.readers import ClipSet
@@ -257,7 +257,24 @@ def reconstruction_error(model: ODMO, clips: ClipSet, idx: np.ndarray, batch: in
                                   metrics.root_height_speed_and_amplitude(reals, up)[1], labs)
     return {"mpjpe": float(torch.cat(joint_err).mean()), "end_error": float(torch.cat(end_err).mean()),
             "body": metrics.body_error(recons, reals), "body_mean_pose": metrics.mean_pose_error(reals, labs),
-            "speed": damp["speed"], "amplitude": damp["amplitude"], "height": metrics.mean_finite(height.values())}
+            "speed": damp["speed"], "amplitude": damp["amplitude"], "height": metrics.mean_finite(height.values()),
+            **plausible(recons, reals, labs, clips)}
+
+
+PLAUSIBLE_REPORTED = ("foot_skate", "foot_contact", "root_up", "root_ground", "kinetic_fd", "coverage", "bone_var")
+
+
+def plausible(recons: np.ndarray, reals: np.ndarray, labels: np.ndarray, clips: ClipSet) -> dict[str, float]:
+    """The evaluation's plausibility measures (odmo_cli.plausibility.compare) of decodes against the clips
+    they decode, overall only ("real_foot_skate" and "real_foot_contact": the clips' own, the floor)."""
+    m = clips.manifest
+    frame = plausibility.frame_for(m.skeleton, m.fps, reals)
+    real = plausibility.measure(reals, frame, m.skeleton.parents)
+    out = plausibility.compare(plausibility.measure(recons, frame, m.skeleton.parents), labels, real, labels,
+                               plausibility.standardizer(real["kinetic"]))
+    return {**{k: out[k] for k in PLAUSIBLE_REPORTED if k in out},
+            "real_foot_skate": plausibility.share(real["skate"], real["steps"]),
+            "real_foot_contact": plausibility.share(real["contact"], real["slots"])}
 
 
 @torch.no_grad()
