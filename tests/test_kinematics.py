@@ -201,3 +201,61 @@ def test_skeleton_is_a_tree(name):
 def test_unknown_skeleton_is_user_error():
     with pytest.raises(UserError, match="unknown skeleton 'smplx'.*humanact12"):
         get_skeleton("smplx")
+
+
+# -- rigid bones ------------------------------------------------------------------------------------------
+
+def test_rigid_bones_keeps_a_rigid_motion_and_fixes_a_stretching_one():
+    from odmo_cli.geometry.kinematics import bone_lengths
+    from odmo_cli.geometry.lie import rigid_bones
+    from odmo_cli.geometry.skeletons import get_skeleton
+
+    parents = get_skeleton("humanact12").parents
+    g = torch.Generator().manual_seed(0)
+    rest = torch.randn(24, 3, generator=g) * 0.2
+    rigid = rest.expand(2, 30, 24, 3).clone() + torch.linspace(0, 1, 30)[None, :, None, None]  # a body gliding
+    assert torch.allclose(rigid_bones(rigid, parents), rigid, atol=1e-6)
+    stretched = rigid.clone()
+    stretched[:, :, 20] += torch.randn(2, 30, 3, generator=g) * 0.05  # a wrist that wanders
+    fixed = rigid_bones(stretched, parents)
+    lengths = bone_lengths(fixed, parents)  # (2, 30, 23)
+    assert float((lengths.amax(1) - lengths.amin(1)).max()) < 1e-5
+    assert torch.equal(fixed[..., 0, :], stretched[..., 0, :])  # the root stays
+    # every bone keeps its direction
+    child = [j for j, p in enumerate(parents) if p >= 0]
+    d_in = stretched[..., child, :] - stretched[..., [parents[j] for j in child], :]
+    d_out = fixed[..., child, :] - fixed[..., [parents[j] for j in child], :]
+    assert torch.allclose(torch.nn.functional.cosine_similarity(d_in, d_out, dim=-1), torch.ones(2, 30, 23), atol=1e-5)
+
+
+def test_rigid_bones_takes_given_lengths_and_has_finite_gradients():
+    from odmo_cli.geometry.kinematics import bone_lengths
+    from odmo_cli.geometry.lie import rigid_bones
+
+    parents = (-1, 0, 1)
+    motion = torch.tensor([[[0.0, 0, 0], [0, 2, 0], [0, 2, 3]]]).repeat(4, 1, 1).requires_grad_(True)  # (T, J, 3)
+    out = rigid_bones(motion, parents, torch.tensor([0.0, 1.0, 0.5]))
+    assert torch.allclose(out[0], torch.tensor([[0.0, 0, 0], [0, 1, 0], [0, 1, 0.5]]))
+    out.sum().backward()
+    assert torch.isfinite(motion.grad).all()
+    assert torch.allclose(bone_lengths(out, parents), torch.tensor([1.0, 0.5]).expand(4, 2))
+
+
+def test_rigid_bones_with_torso_branches_keeps_a_turning_rigid_body_and_stiffens_a_bending_torso():
+    from odmo_cli.geometry.lie import rigid_bones, so3_exp, torso_branches
+    from odmo_cli.geometry.skeletons import get_skeleton
+
+    sk = get_skeleton("humanact12")
+    branches = torso_branches(sk)
+    assert branches == {0: (1, 2, 3), 9: (13, 14, 12)}
+    g = torch.Generator().manual_seed(1)
+    rest = torch.randn(24, 3, generator=g, dtype=torch.float64) * 0.2
+    turn = so3_exp(torch.linspace(0, 2.0, 30, dtype=torch.float64)[:, None] * torch.tensor([0.0, 1.0, 0.3], dtype=torch.float64))
+    turning = (turn[:, None] @ rest[None, :, :, None])[..., 0]  # (30, 24, 3): a rigid body turning
+    assert torch.allclose(rigid_bones(turning, sk.parents, branches=branches), turning, atol=1e-9)
+    bending = turning.clone()
+    bending[:, 3] += torch.randn(30, 3, generator=g, dtype=torch.float64) * 0.03  # the spine wanders off the hips
+    fixed = rigid_bones(bending, sk.parents, branches=branches)
+    for a, b in ((1, 2), (1, 3), (2, 3), (12, 13), (13, 14)):  # distances inside each rigid piece stay fixed
+        d = torch.linalg.vector_norm(fixed[:, a] - fixed[:, b], dim=-1)
+        assert float(d.max() - d.min()) < 1e-9

@@ -236,3 +236,66 @@ def test_shipped_odmo_meets_its_quality_bar(short, dataset, data_dir):
     real, model = report.rows
     missed = unmet_bars(dataset, real, model, report.customization[0])
     assert not missed, "; ".join(missed)
+
+
+# What an animator sees (odmo_cli.plausibility), against the "Real motions" row as the floor, and the
+# actions whose root must bounce as real motion's does.
+PLAUSIBLE_BARS = {"skate": 1.2, "contact": 0.10, "root_up": 0.8, "coverage": 0.85, "kinetic_fd": 3.0,
+                  "bone_var": 0.01}
+BOUNCING = {"humanact12": ("walk", "run", "jump"), "cmu_mocap": ("walk", "run", "jump", "step")}
+
+
+def unmet_plausibility_bars(dataset: str, real: dict, model: dict) -> list[str]:
+    """Every plausibility bar the model row misses, each with its value and the real floor."""
+    m, r, bars = model["metrics"], real["metrics"], PLAUSIBLE_BARS
+    out = []
+    if m["foot_skate"][0] > bars["skate"] * r["foot_skate"][0]:
+        out.append(f"foot skate {m['foot_skate'][0]:.3f} > {bars['skate']} x real {r['foot_skate'][0]:.3f}")
+    if abs(m["foot_contact"][0] / r["foot_contact"][0] - 1) > bars["contact"]:
+        out.append(f"foot contact {m['foot_contact'][0]:.2f} not within {bars['contact']:.0%} of real {r['foot_contact'][0]:.2f}")
+    out += [f"{a} root up {model['root_up_by_action'][a][0]:.2f} < {bars['root_up']}" for a in BOUNCING[dataset]
+            if model["root_up_by_action"][a][0] < bars["root_up"]]
+    if m["coverage"][0] < bars["coverage"]:
+        out.append(f"coverage {m['coverage'][0]:.2f} < {bars['coverage']}")
+    if m["kinetic_fd"][0] > bars["kinetic_fd"] * r["kinetic_fd"][0]:
+        out.append(f"FD_k {m['kinetic_fd'][0]:.1f} > {bars['kinetic_fd']} x real {r['kinetic_fd'][0]:.1f}")
+    if m["bone_var"][0] > bars["bone_var"]:
+        out.append(f"bone variation p95 {m['bone_var'][0]:.3f} > {bars['bone_var']}")
+    return out
+
+
+def test_unmet_plausibility_bars_names_each_miss():
+    real = {"metrics": {"foot_skate": [0.03, 0], "foot_contact": [0.8, 0], "kinetic_fd": [2.0, 0]}}
+    model = {"metrics": {"foot_skate": [0.036, 0], "foot_contact": [0.7, 0], "coverage": [0.9, 0],
+                         "kinetic_fd": [7.0, 0], "bone_var": [0.002, 0]},
+             "root_up_by_action": {"walk": [0.9, 0], "run": [0.5, 0], "jump": [0.8, 0]}}
+    assert unmet_plausibility_bars("humanact12", real, model) == [
+        "foot contact 0.70 not within 10% of real 0.80", "run root up 0.50 < 0.8", "FD_k 7.0 > 3.0 x real 2.0"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("short, dataset", [
+    pytest.param("humanact12", "humanact12", marks=pytest.mark.xfail(strict=True, reason=(
+        "trained before these measures: feet skate (0.108 against 0.034), the root glides (run 0.18), "
+        "coverage 0.61, FD_k 32.6 against 1.7 (docs/results.md)"))),
+    pytest.param("cmu", "cmu_mocap", marks=pytest.mark.xfail(strict=True, reason=(
+        "trained before these measures, and its bones stretch (p95 0.35; made rigid, its speed falls under "
+        "its bar): docs/results.md"))),
+])
+def test_shipped_odmo_is_plausible(short, dataset, data_dir, tmp_path):
+    """What an animator sees, by the default protocol, and a BVH export within 2 cm of the motions."""
+    from odmo_cli.checkpoint import load_model
+    from odmo_cli.evaluation.protocol import EvalConfig, run_evaluation
+    from odmo_cli.formats.bvh import export_motions
+    from odmo_cli.generation.generate import sample
+    from odmo_cli.geometry.skeletons import get_skeleton
+
+    report = run_evaluation([short], dataset, data_dir, None, EvalConfig())
+    real, model = report.rows
+    loaded = load_model(short)
+    batch = sample(loaded, ["all"], 5, seed=0)
+    bvh = export_motions(batch.motions, batch.actions, get_skeleton(loaded.dataset["skeleton"]),
+                         loaded.dataset["fps"], tmp_path)
+    missed = unmet_plausibility_bars(dataset, real, model)
+    missed += [f"BVH export {bvh.max_error_mm:.1f} mm from the motions"] * (bvh.max_error_mm > 20)
+    assert not missed, "; ".join(missed)

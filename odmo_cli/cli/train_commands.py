@@ -88,7 +88,8 @@ def _clips(dataset: str, data: Optional[Path]):
 
 @train_app.command("odmo", cls=Command)
 def train_odmo_cmd(
-    dataset: DatasetOpt = "humanact12", data: DataOpt = None,
+    dataset: Annotated[Optional[str], typer.Option("--dataset", help="Dataset name (see `odmo data list`) or a motion folder (default: the recipe's, else humanact12).")] = None,
+    data: DataOpt = None,
     epochs: Annotated[Optional[int], typer.Option("--epochs", help="Epochs to train (default 300).")] = None,
     batch_size: Annotated[Optional[int], typer.Option("--batch-size", help="Pairs per step (default 256; each step sees twice as many clips).")] = None,
     lr: Annotated[Optional[float], typer.Option("--lr", help="Adam learning rate (default 1e-3, the paper's).")] = None,
@@ -121,12 +122,32 @@ def train_odmo_cmd(
     pose_loss: Annotated[Optional[str], typer.Option("--pose-loss", help="What the pose decoder's position error compares: world (every joint in the dataset's frame, the paper's) or body (every joint but the root about the root, the root's path once).")] = None,
     motion_hidden: Annotated[Optional[int], typer.Option("--motion-hidden", help="Hidden units of the pose decoder (default 128, the paper's); with --init, more than the file's widens its decoder, drawing the same motions at first.")] = None,
     checkpoint_every: CheckpointOpt = None, val_every: ValOpt = None,
+    recipe: Annotated[Optional[Path], typer.Option("--recipe", help="Train from scratch with the phases of this recipe file (TOML; docs/training.md): every model and training setting comes from it; with it give only --dataset/--data, --out, --resume, --threads, --device and --seed.")] = None,
     out: OutOpt = None, resume: ResumeOpt = None, threads: ThreadsOpt = 0,
     device: DeviceOpt = "cpu", nproc: NprocOpt = 1, seed: SeedOpt = 0, as_json: JsonOpt = False,
 ):
     """Train ODMO (the default of `odmo train`); at the end the checkpoint gets its latent bank and modes."""
     from odmo_cli.models.odmo import POSE_FRAMES, POSE_LOSSES, PRESETS, ROOTS
     from odmo_cli.training.odmo import TrainConfig, train_odmo
+
+    if recipe is not None:
+        settings = dict(epochs=epochs, batch_size=batch_size, lr=lr, lr_final=lr_final, tf_start=tf_start,
+                        tf_end=tf_end, init=init, tf_per=tf_per, weight_decay=weight_decay,
+                        decoder_dropout=decoder_dropout, crops=crops, code_noise=code_noise,
+                        same_class_fraction=same_class, sigma2=sigma2, recon_weight=recon_weight,
+                        vel_weight=vel_weight, energy_weight=energy_weight, free_energy_weight=free_energy_weight,
+                        height_weight=height_weight, mix_energy_weight=mix_energy_weight, free_from=free_from,
+                        root=root, train_parts=train_parts, pose_frame=pose_frame, pose_loss=pose_loss,
+                        motion_hidden=motion_hidden, checkpoint_every=checkpoint_every, val_every=val_every)
+        given = [k for k, v in settings.items() if v is not None]
+        given += ["ablate"] * bool(ablate) + ["tf_epochs"] * bool(tf_epochs) + ["mirror"] * mirror
+        given += ["preset"] * (preset != "odmo")
+        if given:
+            raise UserError(f"--{given[0].replace('_', '-')} does not apply with --recipe: the recipe file sets "
+                            "every training setting (give only --dataset/--data, --out, --resume, --threads, "
+                            "--device, --seed)")
+        return _train_recipe(recipe, dataset, data, _out(out, "odmo"), resume, threads, device, nproc, seed, as_json)
+    dataset = dataset or "humanact12"
 
     out = _out(out, "odmo")
     if same_class is not None and not (0 <= same_class <= 1 or same_class == -1):
@@ -183,8 +204,12 @@ def train_odmo_cmd(
         return
     if as_json:
         return _print_result(result)
-    r = result.report
     console.print(f"wrote {result.out} after {result.epochs} epochs")
+    _print_odmo_report(result.report)
+
+
+def _print_odmo_report(r: dict) -> None:
+    """What the end of ODMO's training reports (training.odmo.finish), for people."""
     console.print(f"held-out reconstruction ({r['held_out_clips']} clips, no teacher forcing): "
                   f"mean joint error {r['held_out_mpjpe']:.3f}, end-point error {r['held_out_end_error']:.3f}, "
                   f"speed {r['held_out_speed']:.2f} and amplitude {r['held_out_amplitude']:.2f} of the real clips'")
@@ -242,6 +267,26 @@ def train_classifier_cmd(
     console.print(f"wrote {out}: validation accuracy {100 * report['val_accuracy']:.2f}% on "
                   f"{report['val_clips']} held-out clips (train {100 * report['train_accuracy']:.2f}%, "
                   f"{report['seconds']:.0f} s)")
+
+
+def _train_recipe(path: Path, dataset: str, data, out: Path, resume, threads: int, device: str, nproc: int,
+                  seed: int, as_json: bool) -> None:
+    from odmo_cli.training.recipe import load_recipe, train_recipe
+
+    recipe = load_recipe(path)
+    prints = _start(device, nproc)
+    clips = _clips(dataset or recipe.dataset or "humanact12", data)
+    with _epoch_bar(recipe.epochs, as_json or not prints) as update, _interruptible(out, prints):
+        result = train_recipe(clips, recipe, out, seed, resume, _log_progress(update, recipe.train.get("val_every", 10)),
+                              device, threads)
+    if not prints:
+        return
+    if as_json:
+        return _print_result(result)
+    r = result.report
+    console.print(f"wrote {result.out}: {len(recipe.phases)} phases, {result.epochs} epochs, {r['pairs']:,} pairs "
+                  f"in {r['hours']:.2f} h")
+    _print_odmo_report(r)
 
 
 @train_app.command("a2m", cls=Command)

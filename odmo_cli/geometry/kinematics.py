@@ -65,3 +65,4 @@ def bone_lengths(motion: Array, parents: Sequence[int]) -> Array:
     if isinstance(diff, torch.Tensor):
         return torch.linalg.vector_norm(diff, dim=-1)
     return np.linalg.norm(diff, axis=-1)
+

@@ -45,7 +45,7 @@ import numpy as np
 import torch
 
 from odmo_cli.errors import UserError
-from odmo_cli.geometry.kinematics import check_motion
+from odmo_cli.geometry.kinematics import bone_lengths, check_motion
 from odmo_cli.geometry.skeletons import Skeleton, get_skeleton
 
 __all__ = [
@@ -266,6 +266,27 @@ def joint_side(name: str) -> float:
     if name.startswith("right") or name.endswith("_b"):
         return -1.0
     raise UserError(f"cannot tell the side of joint {name!r} for the rest pose")
+
+
+def torso_branches(skeleton: Skeleton | str) -> dict[int, tuple[int, int, int]]:
+    """The joints with exactly three children, one on each side and one in the middle (a pelvis with its
+    hips and spine, a chest with its collars or shoulders and neck): {joint: (left, right, middle)}."""
+    sk = _skeleton(skeleton)
+    out = {}
+    for j in range(sk.n_joints):
+        kids = [c for c, p in enumerate(sk.parents) if p == j]
+        sides = {}
+        for c in kids:
+            try:
+                sides[c] = joint_side(sk.joint_names[c])
+            except UserError:
+                sides[c] = 0.0
+        left = [c for c in kids if sides[c] > 0]
+        right = [c for c in kids if sides[c] < 0]
+        middle = [c for c in kids if sides[c] == 0]
+        if len(kids) == 3 and len(left) == len(right) == len(middle) == 1:
+            out[j] = (left[0], right[0], middle[0])
+    return out
 
 
 def _body_axes(sk: Skeleton) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -536,3 +557,45 @@ def retarget(
     if lengths.dim() < 1 or lengths.shape[-1] != sk.n_joints:
         raise UserError(f"bone_lengths must have shape (..., {sk.n_joints}), got {tuple(lengths.shape)}")
     return forward_kinematics(root, w, lengths.unsqueeze(-2), sk)
+
+
+def rigid_bones(motion: torch.Tensor, parents: Sequence[int], lengths: torch.Tensor | None = None,
+                branches: dict[int, tuple[int, int, int]] | None = None) -> torch.Tensor:
+    """Motion (..., T, J, 3) with every bone at one length for all frames: each joint, in tree order,
+    placed at its parent's new position plus its own direction from the parent times the bone's length.
+    The root stays where it is and every bone keeps its direction, so only lengths change.
+
+    lengths (..., J): each joint's bone (the root's entry unused); default: each bone's median length
+    over the frames of its motion (the body the motion draws, made rigid). branches {joint: (left,
+    right, middle)}: joints whose three children move as one rigid piece (a pelvis with its hips and
+    spine, a chest with its collars and neck), as in a body model and in BVH export: the children sit at
+    their mean offsets in the joint's body frame (lie.body_frame of the three directions), so the
+    angles between them stay fixed too. Differentiable; a bone of zero length keeps its child on the parent."""
+    check_motion(motion, n_joints=len(parents))
+    if lengths is None:
+        lengths = bone_lengths(motion, parents).median(dim=-2).values  # (..., J-1)
+        full = motion.new_zeros(*lengths.shape[:-1], len(parents))
+        full[..., [j for j, p in enumerate(parents) if p >= 0]] = lengths
+        lengths = full
+    branches = branches or {}
+    joints: list = [None] * len(parents)
+    for j in [0, *_topological_order(parents)]:
+        p = parents[j]
+        if p < 0:
+            joints[j] = motion[..., j, :]
+        elif joints[j] is None:  # not already placed with its parent's rigid piece
+            d = motion[..., j, :] - motion[..., p, :]  # (..., T, 3)
+            joints[j] = joints[p] + _unit(d) * lengths[..., None, j:j + 1]
+        if j in branches:
+            kids = branches[j]
+            offsets = torch.stack([motion[..., c, :] - motion[..., j, :] for c in kids], dim=-1)  # (..., T, 3, 3)
+            frame = body_frame(_unit(offsets[..., 0]), _unit(offsets[..., 1]), _unit(offsets[..., 2]))  # (..., T, 3, 3)
+            local = (frame.transpose(-1, -2) @ offsets).mean(dim=-3, keepdim=True)  # (..., 1, 3, 3): the rigid piece
+            placed = frame @ local  # (..., T, 3, 3)
+            for k, c in enumerate(kids):
+                joints[c] = joints[j] + placed[..., k]
+    return torch.stack(joints, dim=-2)
+
+
+def _unit(d: torch.Tensor) -> torch.Tensor:
+    return d / torch.linalg.vector_norm(d, dim=-1, keepdim=True).clamp_min(1e-12)

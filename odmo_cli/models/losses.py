@@ -14,6 +14,7 @@ import torch
 import torch.nn.functional as F
 
 from odmo_cli.geometry.kinematics import root_velocities
+from odmo_cli.geometry.skeletons import SKELETONS
 
 
 def contrastive(mu1: torch.Tensor, mu2: torch.Tensor, same: torch.Tensor, alpha: float,
@@ -128,6 +129,47 @@ def height_error(pred: torch.Tensor, target: torch.Tensor, up_axis: int, speed_f
             + torch.log((ap + amplitude_floor) / (at + amplitude_floor)).pow(2))
 
 
+CONTACT_HEIGHT = 0.0625  # leg lengths above a foot joint's lowest point: in contact (plausibility.CONTACT_HEIGHT)
+
+
+def contact_labels(motion: torch.Tensor, feet: list[int], leg: tuple[int, int, int], up_axis: int,
+                   up_sign: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where each foot joint of real clips (B, T, J, 3) stays planted: (B, T-1, F) bool, true for a step
+    in which the joint is within CONTACT_HEIGHT leg lengths of its lowest point in the clip at both
+    frames (the evaluation's contact, plausibility.foot_contacts), and the clips' leg lengths (B,)."""
+    hip, knee, ankle = leg
+    length = ((motion[:, :, hip] - motion[:, :, knee]).norm(dim=-1)
+              + (motion[:, :, knee] - motion[:, :, ankle]).norm(dim=-1)).mean(1)  # (B,)
+    h = up_sign * motion[:, :, feet, up_axis]  # (B, T, F)
+    planted = h - h.amin(1, keepdim=True) < CONTACT_HEIGHT * length[:, None, None]
+    return planted[:, 1:] & planted[:, :-1], length
+
+
+def foot_contact_error(pred: torch.Tensor, target: torch.Tensor, feet: list[int], leg: tuple[int, int, int],
+                       up_axis: int, up_sign: float) -> torch.Tensor:
+    """How far pred's (B, T, J, 3) foot joints slide on the ground plane where the target clip's are
+    planted (contact_labels): the squared frame-to-frame displacement in leg lengths, summed over the
+    planted steps and averaged over the frames: (B,). 0 for feet that stay where the clip's stay."""
+    planted, length = contact_labels(target, feet, leg, up_axis, up_sign)
+    ground = [i for i in range(3) if i != up_axis]
+    step = pred[:, 1:, feet][..., ground] - pred[:, :-1, feet][..., ground]  # (B, T-1, F, 2)
+    slide = step.pow(2).sum(-1) / length[:, None, None].pow(2)
+    return (slide * planted).sum(dim=(1, 2)) / planted.shape[1]
+
+
+def drawn_motion(out: dict, cfg) -> torch.Tensor:
+    """The motion (B, T, J, 3) sampling draws of this batch: the free-running decode when there is one,
+    else the teacher-forced, its root read as cfg.root says (ODMO.decode)."""
+    motion = out.get("free_motion", out["motion"])
+    if cfg.root == "decoder":
+        return motion
+    root = out["trajectory"][:, :, None]
+    if cfg.root == "ground":
+        up = cfg.up_axis
+        root = torch.cat([root[..., :up], motion[:, :, :1, up:up + 1], root[..., up + 1:]], dim=-1)
+    return motion - motion[:, :, :1] + root
+
+
 def drawn_root(out: dict, cfg) -> torch.Tensor:
     """The root whose height sampling draws, (B, T, 1, 3): the trajectory generator's with cfg.root
     "trajectory", else the pose decoder's on its free-running decode when there is one (the decode
@@ -152,12 +194,21 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
         l_mre = sequence_error(about_root(out["motion"]), about_root(motion), w)
     else:
         l_mre = sequence_error(out["motion"], motion, w)
-    l_cons = sequence_error(out["trajectory"], out["motion"][:, :, 0])
+    if cfg.cons == "ground":  # the path on the ground plane only: the decoder's root height is its own
+        ground = [i for i in range(3) if i != cfg.up_axis]
+        l_cons = sequence_error(out["trajectory"][..., ground], out["motion"][:, :, 0, ground])
+    else:
+        l_cons = sequence_error(out["trajectory"], out["motion"][:, :, 0])
     l_vel = sequence_error(out["motion"].diff(dim=1), motion.diff(dim=1), w)
     l_energy = energy_error(out["motion"], motion) if cfg.energy_weight else motion.new_zeros(len(motion))
     l_free = energy_error(out["free_motion"], motion) if "free_motion" in out else motion.new_zeros(len(motion))
     l_height = (height_error(drawn_root(out, cfg), motion, cfg.up_axis) if cfg.height_weight
                 else motion.new_zeros(len(motion)))
+    l_foot = motion.new_zeros(len(motion))
+    if cfg.foot_weight and cfg.skeleton:
+        sk = SKELETONS[cfg.skeleton]
+        l_foot = foot_contact_error(drawn_motion(out, cfg), motion, list(sk.feet), sk.legs[0][:3], cfg.up_axis,
+                                    sk.up_sign)
     half = len(motion) // 2
     l_mix = motion.new_zeros(half)  # per pair; 0 for pairs of two actions, which are not mixed
     if "mix_motion" in out:
@@ -178,6 +229,7 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
         "free_energy": l_free.mean(),
         "height": l_height.mean(),
         "mix_energy": l_mix.mean(),
+        "foot": l_foot.mean(),
         "vae": standard_kl(mu, logvar).mean() * 2,
     }
 
@@ -196,6 +248,8 @@ def total_loss(terms: dict[str, torch.Tensor], cfg) -> torch.Tensor:
         recon = recon + cfg.height_weight * terms["height"]
     if cfg.mix_energy_weight:
         recon = recon + cfg.mix_energy_weight * terms["mix_energy"]
+    if cfg.foot_weight:
+        recon = recon + cfg.foot_weight * terms["foot"]
     if cfg.use_traj:
         recon = recon + terms["r"]
     if cfg.use_cons:

@@ -13,11 +13,15 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from odmo_cli.config import Config, non_finite_field
+from odmo_cli.geometry.lie import rigid_bones, torso_branches
+from odmo_cli.geometry.skeletons import SKELETONS
 
 
 ROOTS = ("trajectory", "decoder", "ground")  # ODMOConfig.root
 POSE_FRAMES = ("world", "path")  # ODMOConfig.pose_frame
 POSE_LOSSES = ("world", "body")  # ODMOConfig.pose_loss
+BONES = ("rigid", "free")  # ODMOConfig.bones
+CONS = ("all", "ground")  # ODMOConfig.cons
 
 
 @dataclass
@@ -92,6 +96,23 @@ class ODMOConfig(Config):
     # on the trajectory generator's path and drops the decoder's own; on CMU MoCap that path is most of the
     # world-frame loss (docs/training.md).
     pose_loss: str = "world"
+    # the skeleton the joints are (geometry.skeletons), and what decode does with its bones: "rigid" gives
+    # every bone of a motion one length (its median over the frames) and the pelvis and chest one shape,
+    # by a final projection that keeps the root and each limb bone's direction (geometry.lie.rigid_bones;
+    # not in the paper nor the release, whose decoders let bones stretch), so that the body keeps its
+    # size and a BVH, whose bones are rigid, reproduces it; "free" keeps the pose decoder's joints as drawn.
+    # Training's losses see the pose decoder's own joints either way.
+    skeleton: str = ""
+    bones: str = "rigid"
+    # weight of L_foot, the squared slide of the foot joints of the motion sampling draws (the root read as
+    # `root` says) wherever the real clip's foot joint is planted (losses.foot_contact_error; not in the
+    # paper nor the release; needs `skeleton`). The body and the path come from two networks; nothing else
+    # asks a planted foot's motion about the root to cancel the root's travel.
+    foot_weight: float = 0.0
+    # what L_cons ties to the trajectory: "all" the pose decoder's root (the paper and the release), or
+    # "ground" its path on the ground plane only, leaving the root's height (a run's bounce) to the decoder,
+    # which sees the previous poses, where the trajectory generator draws the whole path at once
+    cons: str = "all"
 
     def __post_init__(self):
         if bad := non_finite_field(self):
@@ -102,6 +123,16 @@ class ODMOConfig(Config):
             raise ValueError(f"root must be one of {', '.join(ROOTS)}, got {self.root!r}")
         if self.pose_frame not in POSE_FRAMES:
             raise ValueError(f"pose_frame must be one of {', '.join(POSE_FRAMES)}, got {self.pose_frame!r}")
+        if self.cons not in CONS:
+            raise ValueError(f"cons must be one of {', '.join(CONS)}, got {self.cons!r}")
+        if self.foot_weight < 0:
+            raise ValueError(f"foot_weight must be non-negative, got {self.foot_weight}")
+        if self.foot_weight and not self.skeleton:
+            raise ValueError("foot_weight needs the skeleton (its feet): set skeleton")
+        if self.bones not in BONES:
+            raise ValueError(f"bones must be one of {', '.join(BONES)}, got {self.bones!r}")
+        if self.skeleton and self.skeleton not in SKELETONS:
+            raise ValueError(f"skeleton must be one of {', '.join(SKELETONS)}, got {self.skeleton!r}")
         if self.pose_loss not in POSE_LOSSES:
             raise ValueError(f"pose_loss must be one of {', '.join(POSE_LOSSES)}, got {self.pose_loss!r}")
         if not (self.sigma2 > 0 and self.recon_weight > 0):
@@ -294,7 +325,7 @@ class ODMO(nn.Module):
                target: torch.Tensor | None = None, teacher: torch.Tensor | None = None
                ) -> tuple[torch.Tensor, torch.Tensor]:
         """Code (B, D), labels (B,), end point (B, 3) -> (trajectory (B, T, 3), motion (B, T, J, 3)),
-        the motion's root as cfg.root says."""
+        the motion's root as cfg.root says, its bones as cfg.bones says."""
         trajectory, prepared = self._plan(z, labels, end_point)
         motion = self._poses(prepared, trajectory, target, teacher)
         if self.cfg.root != "decoder":
@@ -303,6 +334,9 @@ class ODMO(nn.Module):
                 up = self.cfg.up_axis
                 root = torch.cat([root[..., :up], motion[:, :, :1, up:up + 1], root[..., up + 1:]], dim=-1)
             motion = motion - motion[:, :, :1] + root  # the same body about its root, on T-hat
+        if self.cfg.bones == "rigid" and self.cfg.skeleton:
+            skeleton = SKELETONS[self.cfg.skeleton]
+            motion = rigid_bones(motion, skeleton.parents, branches=torso_branches(skeleton))
         return trajectory, motion
 
     def _plan(self, z: torch.Tensor, labels: torch.Tensor, end_point: torch.Tensor) -> tuple[torch.Tensor, tuple]:

@@ -124,6 +124,8 @@ class ODMOTrainer(Trainer):
     config_class = ODMOConfig
     model_class = ODMO
     init: dict | None = None  # where the weights started (start_from), kept in every checkpoint
+    recipe = None  # training.recipe.Recipe of a recipe run, kept in every checkpoint with the phase
+    phase = 0
 
     def build_optimizers(self) -> dict:
         trained = self.tc.parts()
@@ -188,7 +190,8 @@ class ODMOTrainer(Trainer):
                 sums[k] = sums.get(k, 0.0) + float(v.detach()) * own
             sums["total"] = sums.get("total", 0.0) + float(loss.detach()) * own
         sums = self.group.sum(sums)
-        return {"clips": 2 * n_pairs, "teacher": teacher_rate, **{k: v / n_pairs for k, v in sums.items()}}
+        return {"clips": 2 * n_pairs, "teacher": teacher_rate, **({"phase": self.phase} if self.recipe else {}),
+                **{k: v / n_pairs for k, v in sums.items()}}
 
     def dropout_masks(self, n: int, gen: torch.Generator) -> torch.Tensor:
         """The pose decoder's dropout for n clips: (2, n, H) multipliers, 0 or 1 / (1 - p)."""
@@ -218,10 +221,27 @@ class ODMOTrainer(Trainer):
                      "config": ckpt["config"], **({"init": ckpt["init"]} if ckpt.get("init") else {})}
 
     def extra_state(self) -> dict:
-        return {"init": self.init} if self.init else {}
+        out = {"init": self.init} if self.init else {}
+        if self.recipe is not None:
+            out.update(recipe=self.recipe.to_dict(), recipe_phase=self.phase)
+        return out
 
     def load_extra_state(self, ckpt: dict) -> None:
         self.init = ckpt.get("init")
+        self.phase = int(ckpt.get("recipe_phase", 0))
+
+    def enter_phase(self, phase: int, cfg: ODMOConfig, tc: TrainConfig) -> None:
+        """Go on to a recipe's next phase in the same run: its model values (loss weights and readouts;
+        the architecture is the run's), schedule and networks, a fresh optimizer; the weights and every
+        random stream go on as they are."""
+        self.phase, self.cfg, self.tc = phase, cfg, tc
+        for module in (self.model, self.model.trajectory, self.model.motion):
+            module.cfg = cfg
+        # the last phase's gradients would otherwise stay on the parts this phase freezes, and count in clipping
+        self.model.zero_grad(set_to_none=True)
+        self.optimizers = self.build_optimizers()
+        self.epoch = 0
+        self.setup()
 
     def validate(self) -> dict[str, float]:
         """Reconstruction error of held-out clips from their mean code, with no teacher forcing."""
@@ -313,7 +333,7 @@ def mode_homogeneity(clips: ClipSet, idx: np.ndarray, bank: dict, modes: dict, l
     return metrics.mode_homogeneity(motions.numpy()[keep], labels[keep], found[keep])
 
 
-def finish(trainer: ODMOTrainer) -> dict:
+def finish(trainer: ODMOTrainer, extra: dict | None = None) -> dict:
     """Latent bank, mode mixtures, held-out reconstruction and latent separation; written into the checkpoint.
     The same reconstruction of the training clips ("train_"; their first crops) says whether the decoder
     fits the clips it learnt from: a body error there no lower than the action-mean body's is under-fitting,
@@ -342,6 +362,7 @@ def finish(trainer: ODMOTrainer) -> dict:
         report.update({f"held_out_body_{k}": v for k, v in retrieved.items()})
     modes = fit_modes(bank, trainer.cfg.n_classes, seed=trainer.tc.seed)
     report["mode_homogeneity"] = mode_homogeneity(clips, trainer.train_idx, bank, modes, trainer.cfg.length)
+    report.update(extra or {})
     trainer.save({"latent_bank": bank, "modes": modes, "report": report})
     return report
 
@@ -370,7 +391,9 @@ def train_odmo(clips: ClipSet, tc: TrainConfig, out: Path, overrides: dict | Non
             if ckpt.get("kind") != "odmo":
                 raise UserError(f"--init {init} holds a {ckpt.get('kind')!r} model, not odmo")
             kept = odmo_config(f"--init {init}", ckpt.get("config", {}))
-            cfg = ODMOConfig.from_dict({**ckpt.get("config", {}), **(overrides or {})})
+            # files written before the config named its skeleton take the dataset's
+            cfg = ODMOConfig.from_dict({"skeleton": clips.manifest.skeleton_name, "bones": "free",
+                                        **ckpt.get("config", {}), **(overrides or {})})
             if cfg.pose_frame != kept.pose_frame:  # same shapes, other meaning: would load silently
                 raise UserError(f"--init {Path(init).name} draws poses in the {kept.pose_frame} frame; "
                                 f"a stage from it keeps that frame, not {cfg.pose_frame}")

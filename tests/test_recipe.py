@@ -1,0 +1,121 @@
+"""Recipes as files (`odmo train --recipe FILE`): strict keys, phases in one run under one seed, and
+exact resume across a phase boundary."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from odmo_cli.checkpoint import load_checkpoint, load_model
+from odmo_cli.cli import app
+from odmo_cli.data.locate import resolve
+from odmo_cli.data.readers import read_dataset
+from odmo_cli.errors import UserError
+from odmo_cli.training.recipe import load_recipe, train_recipe
+
+RECIPE = """
+dataset = "lines"
+preset = "paper"
+[model]
+motion_hidden = 16    # small: a test
+traj_hidden = 16
+encoder_fc = 16
+latent_dim = 4
+[train]
+batch_size = 20
+pairs_per_epoch = 40
+val_fraction = 0.1
+val_every = 2
+checkpoint_every = 1
+threads = 1
+[[phases]]
+name = "all networks"
+epochs = 3
+lr = 1e-2
+lr_final = 1e-3
+[[phases]]
+name = "the pose decoder, planted feet"
+epochs = 2
+lr = 1e-3
+tf_start = 0.0
+tf_end = 0.0
+train_parts = "motion"
+[phases.model]
+foot_weight = 5.0
+"""
+
+
+@pytest.fixture
+def recipe_file(tmp_path):
+    path = tmp_path / "lines.toml"
+    path.write_text(RECIPE)
+    return path
+
+
+@pytest.fixture(scope="module")
+def lines_clips(lines_folder):
+    manifest, root = resolve(lines_folder)
+    return read_dataset(root, manifest)
+
+
+@pytest.mark.parametrize("edit, message", [
+    (("[model]\n", "[model]\nenergy_wieght = 1.0\n"), "lines.toml \\[model\\]: unknown key 'energy_wieght'; did you mean 'energy_weight'"),
+    (("lr_final = 1e-3", "lr_fnal = 1e-3"), "phase 1: unknown key 'lr_fnal'; did you mean 'lr_final'"),
+    (("foot_weight = 5.0", "motion_hidden = 32"), "phase 2 \\[phases.model\\]: unknown key 'motion_hidden'"),
+    (("epochs = 3\n", ""), "phase 1: give its epochs"),
+    (("lr = 1e-2", "lr = -1.0"), "phase 1: learning rates must be positive"),
+    (("preset = \"paper\"", "preset = \"paper\"\nseed = 3"), "unknown key 'seed'"),
+    (("[train]", "[train"), "not valid TOML"),
+])
+def test_a_recipe_with_a_mistake_is_refused_in_one_line(recipe_file, edit, message):
+    recipe_file.write_text(RECIPE.replace(*edit))
+    with pytest.raises(UserError, match=message):
+        load_recipe(recipe_file)
+
+
+def test_phases_train_in_one_run_and_the_file_records_them(recipe_file, lines_clips, tmp_path):
+    recipe = load_recipe(recipe_file)
+    assert recipe.epochs == 5 and recipe.model_values(0) == {"motion_hidden": 16, "traj_hidden": 16,
+                                                             "encoder_fc": 16, "latent_dim": 4}
+    out = tmp_path / "odmo.pt"
+    result = train_recipe(lines_clips, recipe, out, seed=3)
+    ckpt = load_checkpoint(out)
+    assert ckpt["recipe_phase"] == 1 and ckpt["recipe"]["phases"][1]["model"] == {"foot_weight": 5.0}
+    assert [h["phase"] for h in ckpt["history"]] == [0, 0, 0, 1, 1]
+    assert ckpt["config"]["foot_weight"] == 5.0 and ckpt["train_config"]["train_parts"] == "motion"
+    assert ckpt["train_config"]["seed"] == 3
+    assert result.report["pairs"] == 200 and result.report["hours"] > 0
+    assert "held_out_foot_skate" in result.report
+    assert load_model(out).model.cfg.bones == "rigid"  # a new file decodes rigid bodies
+
+
+def test_resume_across_a_phase_boundary_is_exact(recipe_file, lines_clips, tmp_path):
+    recipe = load_recipe(recipe_file)
+    whole = tmp_path / "whole.pt"
+    train_recipe(lines_clips, recipe, whole, seed=1)
+    cut = tmp_path / "cut.pt"
+
+    def stop_after_4(log):
+        if log["epoch"] == 4:  # the first epoch of the second phase
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train_recipe(lines_clips, recipe, cut, seed=1, progress=stop_after_4)
+    assert load_checkpoint(cut)["recipe_phase"] == 1 and load_checkpoint(cut)["epoch"] == 1
+    train_recipe(lines_clips, recipe, cut, seed=1, resume=cut)
+    a, b = load_checkpoint(whole)["state_dict"], load_checkpoint(cut)["state_dict"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    with pytest.raises(UserError, match="--seed 1, not 2"):
+        train_recipe(lines_clips, recipe, cut, seed=2, resume=cut)
+
+
+def test_odmo_train_recipe_on_the_command_line(recipe_file, lines_folder, tmp_path):
+    out = tmp_path / "cli.pt"
+    r = CliRunner().invoke(app, ["train", "--recipe", str(recipe_file), "--dataset", str(lines_folder),
+                                 "--out", str(out), "--seed", "2"])
+    assert r.exit_code == 0, r.output
+    assert load_checkpoint(out)["recipe"]["phases"][0]["name"] == "all networks"
+    r = CliRunner().invoke(app, ["train", "--recipe", str(recipe_file), "--dataset", str(lines_folder),
+                                 "--lr", "0.1", "--out", str(out)])
+    assert r.exit_code == 2 and "--lr" in r.output and "recipe" in r.output
