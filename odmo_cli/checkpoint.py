@@ -18,6 +18,7 @@ and `load_model`, which turns any generator checkpoint into a ready model.
 from __future__ import annotations
 
 import copy
+import zipfile
 from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
@@ -68,9 +69,13 @@ def load_checkpoint(path: str | Path) -> dict:
     path = Path(path)
     if not path.is_file():
         raise UserError(f"checkpoint not found: {path}")
+    if path.stat().st_size == 0:
+        raise UserError(f"cannot load checkpoint {path}: the file is empty")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises several types for bad or unsafe files
+        if not _torch_file(path):
+            raise UserError(f"cannot load checkpoint {path}: not a PyTorch checkpoint") from None
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise UserError(f"cannot load checkpoint {path}: {first}") from None
     if not isinstance(payload, dict):
@@ -80,6 +85,13 @@ def load_checkpoint(path: str | Path) -> dict:
         raise UserError(f"{path} has checkpoint format {version}, newer than this odmo reads "
                         f"(format {FORMAT_VERSION} and older): upgrade odmo to load it")
     return payload
+
+
+def _torch_file(path: Path) -> bool:
+    """Whether a file is laid out as torch.save writes: a zip archive (torch 1.6 and later) or the older
+    pickle stream (Action2Motion's released files), which starts with pickle's protocol byte."""
+    with open(path, "rb") as f:
+        return zipfile.is_zipfile(path) or f.read(1) == b"\x80"
 
 
 def describe_checkpoint(path: str | Path) -> dict:

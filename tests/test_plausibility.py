@@ -136,3 +136,46 @@ def test_every_shipped_skeleton_names_its_feet():
         sk = get_skeleton(name)
         assert sk.feet == feet
         assert all("ankle" in sk.joint_names[leg[2]] and "hip" in sk.joint_names[leg[0]] for leg in sk.legs)
+
+
+# -- L_foot: the training term on the same contact --------------------------------------------------------
+
+def test_l_foot_is_zero_for_planted_feet_and_the_squared_slide_otherwise():
+    import torch
+
+    from odmo_cli.models.losses import contact_labels, foot_contact_error
+
+    sk = get_skeleton("humanact12")
+    rng = np.random.default_rng(3)
+    real = torch.from_numpy(rng.normal(0, 0.01, (2, 20, 24, 3)))  # jittering in place; up is -y
+    real[:, :, 0, 1], real[:, :, 4, 1], real[:, :, 7, 1] = -1.0, -0.5, 0.0  # hip (root) 1, knee 0.5, ankle 0 high
+    real[:, :, 1] = real[:, :, 0]  # the left hip on the root: leg length 1
+    real[:, :, [10, 8, 11], 1] = 0.0
+    planted, leg = contact_labels(real, list(sk.feet), sk.legs[0][:3], 1, -1.0)
+    # the same contact as the evaluation's (plausibility.foot_contacts) on the same clips
+    frame = P.Frame(1, -1.0, sk.feet, 20.0, 1.0)
+    assert planted.sum(dim=(1, 2)).tolist() == P.foot_contacts(real.numpy(), frame)[1].tolist()
+    assert torch.allclose(leg, torch.ones(2, dtype=leg.dtype), atol=0.05)
+    still = real.clone()
+    still[:, :, list(sk.feet)] = real[:, :1, list(sk.feet)]  # feet that do not move at all
+    assert torch.allclose(foot_contact_error(still, real, list(sk.feet), sk.legs[0][:3], 1, -1.0),
+                          torch.zeros(2, dtype=real.dtype))
+    slide = still.clone()
+    slide[:, :, list(sk.feet), 0] += 0.1 * torch.arange(20, dtype=real.dtype)[None, :, None]  # 0.1 a frame along x
+    expected = planted.sum(dim=(1, 2)).to(real.dtype) * (0.1 / leg) ** 2 / 19
+    assert torch.allclose(foot_contact_error(slide, real, list(sk.feet), sk.legs[0][:3], 1, -1.0), expected)
+
+
+def test_cons_ground_leaves_the_decoders_root_height_free():
+    import torch
+
+    from odmo_cli.models.losses import odmo_terms
+    from odmo_cli.models.odmo import ODMOConfig
+
+    motion = torch.zeros(4, 6, 24, 3)
+    out = {"mu": torch.zeros(4, 2), "logvar": torch.zeros(4, 2), "trajectory": torch.zeros(4, 6, 3),
+           "motion": motion.clone()}
+    out["motion"][:, :, 0, 1] = 0.3  # the decoder's root 0.3 above the trajectory, on its path
+    labels = torch.tensor([0, 1, 0, 1])
+    assert float(odmo_terms(out, motion, labels, ODMOConfig(cons="all"))["cons"]) > 0
+    assert float(odmo_terms(out, motion, labels, ODMOConfig(cons="ground"))["cons"]) == 0

@@ -355,7 +355,10 @@ def export_motions(motions: np.ndarray, actions, skeleton: Skeleton, fps: float,
     if not np.isfinite(fps) or fps <= 0:
         raise UserError(f"fps must be a positive number, got {fps}")
     motions = np.asarray(motions)
-    out_dir.mkdir(exist_ok=True)
+    try:
+        out_dir.mkdir(exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"cannot create {out_dir}: {exc.strerror or exc}") from None
     width = max(3, len(str(len(motions) - 1)))
     files, err, total, stretch, joints = [], 0.0, 0.0, 0.0, 0
     for i, motion in enumerate(motions):

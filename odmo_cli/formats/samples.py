@@ -57,6 +57,10 @@ def read_samples(path: str | Path, keys: tuple[str, ...] = ("motions", "actions"
     path = Path(path)
     if not path.is_file():
         raise UserError(f"samples file not found: {path}")
+    if path.stat().st_size == 0:
+        raise UserError(f"cannot read {path}: the file is empty")
+    if not zipfile.is_zipfile(path):
+        raise UserError(f"cannot read {path}: not an .npz samples file (not a zip archive)")
     try:
         with np.load(path, allow_pickle=False) as f:
             missing = [k for k in keys if k not in f]
@@ -68,7 +72,7 @@ def read_samples(path: str | Path, keys: tuple[str, ...] = ("motions", "actions"
             out["n"] = len(f["motions"]) if "motions" in f else 0
     except KeyError as exc:
         raise UserError(f"{path} is not an odmo samples file (no {exc.args[0]})") from None
-    except (ValueError, OSError, zipfile.BadZipFile) as exc:
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
         raise UserError(f"cannot read {path}: {exc}") from None
     try:
         sk = get_skeleton(out["skeleton"])
