@@ -36,10 +36,15 @@ def _limits(points: np.ndarray) -> tuple[np.ndarray, float]:
     return (lo + hi) / 2, float((hi - lo).max() / 2 * 0.75 + 0.05)
 
 
+CELL_INCHES = 2.6  # a cell's width in the figure (its height 2.8)
+CELL_PIXELS = 480  # a cell's default width in pixels: a figure reads at this size
+MAX_PIXELS = 1920  # the default figure's width at most (a wide grid gets smaller cells)
+
+
 def _figure(n: int, titles: Sequence[str] | None, cols: int | None = None):
     cols = cols or min(n, 5)
     rows = (n + cols - 1) // cols
-    fig = plt.figure(figsize=(2.6 * cols, 2.8 * rows))
+    fig = plt.figure(figsize=(CELL_INCHES * cols, 2.8 * rows))
     fig.subplots_adjust(left=0, right=1, bottom=0, top=0.92, wspace=0, hspace=0.05)
     axes = [fig.add_subplot(rows, cols, i + 1, projection="3d") for i in range(n)]
     for i, ax in enumerate(axes):
@@ -80,7 +85,7 @@ def animate(motions: np.ndarray, skeleton: Skeleton, out: str | Path, fps: float
     asked end point (end_points (N, 3), dataset frame; NaN rows are skipped) as a cross. With
     `trail` the paths of the root, hands, feet and head so far are drawn. `.mp4` needs ffmpeg,
     else a GIF is written beside it; `.png` is a still of `frame` (default: the middle one).
-    size: (width, height) of the output in pixels (default: 156 x 168 per cell for animations).
+    size: (width, height) of the output in pixels (default: 480 x 517 per cell, the whole at most 1920 wide).
     Returns (the path written, a notice or "").
     """
     out = Path(out)
@@ -126,7 +131,8 @@ def animate(motions: np.ndarray, skeleton: Skeleton, out: str | Path, fps: float
                 line.set_data_3d(path[:, 0], path[:, 1], path[:, 2])
         return [ln for group in lines + trails for ln in group]
 
-    dpi = 80 if writer is None else 60
+    cols_drawn = round(fig.get_size_inches()[0] / CELL_INCHES)
+    dpi = min(CELL_PIXELS, MAX_PIXELS / cols_drawn) / CELL_INCHES
     if size is not None:
         fig.set_size_inches(size[0] / dpi, size[1] / dpi)
     try:

@@ -341,3 +341,13 @@ def test_action2motion_released_samples_evaluate(data_dir, tmp_path):
                                                "turn_steering_wheel", "boxing", "throw"])
     assert row["not_available"][0].startswith("no motions of sit, phone")
     assert "warm_up, drink, lift_dumbbell, turn_steering_wheel" in row["not_available"][1]
+
+
+def test_one_repeat_prints_no_interval(lines_model, lines_folder, lines_classifier):
+    args = ["eval", "--model", str(lines_model), "--dataset", str(lines_folder), "--classifier", str(lines_classifier),
+            "--per-action", "10", "--by-action"]
+    one = CliRunner().invoke(app, args + ["--repeats", "1"])
+    assert one.exit_code == 0, one.output
+    assert "±" not in one.output and "95% CI" not in one.output
+    two = CliRunner().invoke(app, args + ["--repeats", "2"])
+    assert two.exit_code == 0 and "±" in two.output

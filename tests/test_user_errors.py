@@ -64,3 +64,20 @@ def test_a_checkpoint_that_is_not_one(tmp_path, content, message):
     one_line_error(["sample", "--model", str(path), "--action", "jump", "--n", "1", "--out", str(tmp_path / "s.npz")],
                    "notckpt.pt", message)
     assert sorted(os.listdir(tmp_path)) == ["notckpt.pt"]
+
+
+def test_render_writes_beside_its_samples_by_default_at_a_readable_size(samples):
+    from PIL import Image
+
+    r = runner.invoke(app, ["render", str(samples)])
+    assert r.exit_code == 0, r.output
+    gif = samples.with_suffix(".gif")
+    with Image.open(gif) as im:
+        assert im.size[0] >= 480
+
+
+def test_info_takes_the_checkpoint_as_its_argument():
+    for args in (["info", "cmu"], ["info", "--model", "cmu"]):
+        r = runner.invoke(app, args)
+        assert r.exit_code == 0 and "cmu_mocap" in r.output, r.output
+    one_line_error(["info", "cmu", "--model", "humanact12"], "give the checkpoint once")

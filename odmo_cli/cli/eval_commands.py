@@ -66,9 +66,10 @@ def evaluate(
     table = Table(title=f"{report.dataset}: {report.config['repeats']} repeats x {report.config['per_action']} "
                         f"per action, classifier {Path(report.classifier).name} ({report.seconds:.0f} s)")
     keys = list(METRIC_HEADS) if wide else list(NARROW)
-    console.print(_metric_table(report.rows, {k: METRIC_HEADS[k] for k in keys}, table))
+    ci = report.config["repeats"] > 1  # one set: no interval to estimate
+    console.print(_metric_table(report.rows, {k: METRIC_HEADS[k] for k in keys}, table, ci))
     console.print(_metric_table(report.rows, PLAUSIBLE_HEADS, Table(
-        title="what an animator sees (no network; the real row is the floor)")))
+        title="what an animator sees (no network; the real row is the floor)"), ci))
     for row in report.rows:
         for why in row.get("not_available", []):
             console.print(f"{row['name']}: {why}", highlight=False, markup=False)
@@ -80,43 +81,46 @@ def evaluate(
                                    ("foot_skate_by_action", "foot skate", 3), ("root_up_by_action", "root up ratio", 2),
                                    ("root_ground_by_action", "root ground ratio", 2),
                                    ("coverage_by_action", "coverage", 2)):
-            console.print(_by_action_table(report.rows, key, title, digits))
+            console.print(_by_action_table(report.rows, key, title, digits, ci))
     for c in report.customization:
         m = c["metrics"]
-        console.print(f"customization {c['name']}: Acc {m['accuracy'][0]:.2f} ±{m['accuracy'][1]:.2f}, "
-                      f"dist_e {m['dist_e'][0]:.4f} ±{m['dist_e'][1]:.4f}")
+        console.print(f"customization {c['name']}: Acc {_value(m['accuracy'], 2, ci)}, dist_e {_value(m['dist_e'], 4, ci)}")
     if out is not None:
         console.print(f"wrote {out}")
 
 
-def _metric_table(rows: list[dict], heads: dict[str, str], table: Table) -> Table:
+def _metric_table(rows: list[dict], heads: dict[str, str], table: Table, ci: bool = True) -> Table:
     table.add_column("model")
     for head in heads.values():
         table.add_column(head, justify="right")
     for row in rows:
-        table.add_row(row["name"], *(_cell(row, k) for k in heads))
+        table.add_row(row["name"], *(_cell(row, k, ci) for k in heads))
     return table
 
 
-def _cell(row: dict, key: str) -> str:
+def _cell(row: dict, key: str, ci: bool = True) -> str:
     if key not in row["metrics"]:
         return "-"
-    mean, half = row["metrics"][key]
-    if mean != mean:  # NaN: not available for this row (see its note)
+    if row["metrics"][key][0] != row["metrics"][key][0]:  # NaN: not available for this row (see its note)
         return "n/a"
-    digits = DIGITS.get(key, 2)
-    return f"{mean:.{digits}f} ±{half:.{digits}f}"
+    return _value(row["metrics"][key], DIGITS.get(key, 2), ci and len(row.get("per_repeat", [])) != 1)
 
 
-def _by_action_table(rows: list[dict], key: str, title: str, digits: int) -> Table:
-    table = Table(title=f"{title} per action (mean ± 95% CI)")
+def _value(mean_half: list[float], digits: int, ci: bool) -> str:
+    """"mean ±half" (the 95% CI), or the mean alone where there is no interval (one set)."""
+    mean, half = mean_half
+    return f"{mean:.{digits}f} ±{half:.{digits}f}" if ci else f"{mean:.{digits}f}"
+
+
+def _by_action_table(rows: list[dict], key: str, title: str, digits: int, ci: bool = True) -> Table:
+    table = Table(title=f"{title} per action" + (" (mean ± 95% CI)" if ci else ""))
     table.add_column("action")
     for row in rows:
         table.add_column(row["name"], justify="right")
     actions = list(dict.fromkeys(a for row in rows for a in row.get(key, {})))
     for a in actions:
-        cells = [f"{row[key][a][0]:.{digits}f} ±{row[key][a][1]:.{digits}f}" if a in row.get(key, {}) else "-"
-                 for row in rows]
+        cells = [_value(row[key][a], digits, ci and len(row.get("per_repeat", [])) != 1) if a in row.get(key, {})
+                 else "-" for row in rows]
         table.add_row(a, *cells)
     return table
 

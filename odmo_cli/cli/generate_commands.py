@@ -14,11 +14,14 @@ from odmo_cli.errors import UserError
 
 
 @app.command("info", cls=Command)
-def info(model: ModelOpt = None, as_json: JsonOpt = False):
+def info(checkpoint: Annotated[Optional[str], typer.Argument(help="Checkpoint path or shipped name (as --model).", show_default=False)] = None,
+         model: ModelOpt = None, as_json: JsonOpt = False):
     """What a checkpoint holds: model kind, configs, dataset, epochs, final report."""
     from odmo_cli.checkpoint import checkpoint_path, describe_checkpoint
 
-    desc = describe_checkpoint(checkpoint_path(model))
+    if checkpoint and model and checkpoint != model:
+        raise UserError(f"give the checkpoint once: {checkpoint} or --model {model}")
+    desc = describe_checkpoint(checkpoint_path(checkpoint or model))
     if as_json:
         return print_json(desc)
     for key, value in desc.items():
@@ -53,8 +56,10 @@ def _summary(batch, out: Path, as_json: bool, extra: dict | None = None) -> None
             f"n/a: {v}" if k < 0 else f"{k}: {v}" for k, v in sorted(counts.items())))
     console.print(table)
     if payload["dist_e"] is not None:
-        reach = np.sqrt(np.mean(np.sum((batch.end_points - batch.reached) ** 2, axis=1)))
-        console.print(f"dist_e (mean squared end-point error) {payload['dist_e']:.4f}; RMS distance {reach:.3f}")
+        axes = list(batch.end_axes)  # the ground-plane coordinates --end gave, not the height it did not
+        reach = np.sqrt(np.mean(np.sum((batch.end_points[:, axes] - batch.reached[:, axes]) ** 2, axis=1)))
+        console.print(f"dist_e (mean squared end-point error) {payload['dist_e']:.4f}; RMS distance on the ground "
+                      f"plane {reach:.3f}")
     console.print(f"model {batch.model}, seed {batch.seed}, {batch.dataset['fps']:g} fps, skeleton {batch.dataset['skeleton']}")
 
 
@@ -147,7 +152,7 @@ def export_cmd(
 @app.command("render", cls=Command)
 def render_cmd(
     samples: Annotated[Path, typer.Argument(help="A samples file (.npz).")],
-    out: Annotated[Path, typer.Option("--out", help="Animation to write: .gif or .mp4 (.png: one still).")],
+    out: Annotated[Optional[Path], typer.Option("--out", help="Animation to write: .gif or .mp4 (.png: one still); default: the samples file's name with .gif, beside it.")] = None,
     index: Annotated[Optional[int], typer.Option("--index", help="Render only this motion (default 0).")] = None,
     grid: Annotated[Optional[str], typer.Option("--grid", help="ROWSxCOLS of the first motions, e.g. 4x5.")] = None,
     trail: Annotated[bool, typer.Option("--trail", help="Draw the paths of the root, hands and feet so far.", metavar="")] = False,
@@ -159,6 +164,7 @@ def render_cmd(
     """3-D stick-figure animation with ground plane, root trajectory and asked end point."""
     from odmo_cli.viz import render_samples
 
+    out = out or samples.with_suffix(".gif")
     written, notice = render_samples(samples, out, index, grid, trail, size, frame, compare, data, seed)
     if notice:
         err_console.print(notice, highlight=False, markup=False)
