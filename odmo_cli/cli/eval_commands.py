@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -53,9 +54,9 @@ def evaluate(
     others = list(compare or []) + list(checkpoints or [])
     # the shipped default joins only when nothing else is named: `--compare a.pt b.pt` is a table of a and b
     models = ([model] if model or not (samples or others) else []) + others
-    with err_console.status("evaluating ..."):
+    with _sets_bar(repeats * max(len(models), 0), as_json) as advance:
         report = run_evaluation(models, dataset, data, classifier, cfg, list(samples or []), customization,
-                                held_out=held_out, device=dev)
+                                progress=advance, held_out=held_out, device=dev)
     if out is not None:
         import json
 
@@ -87,6 +88,28 @@ def evaluate(
         console.print(f"customization {c['name']}: Acc {_value(m['accuracy'], 2, ci)}, dist_e {_value(m['dist_e'], 4, ci)}")
     if out is not None:
         console.print(f"wrote {out}")
+
+
+@contextmanager
+def _sets_bar(total: int, quiet: bool):
+    """Yields advance(): a bar of the generated sets with the time elapsed and left, on a terminal's
+    stderr (quiet with --json); in a log, one line per set."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    bar = Progress(TextColumn("evaluating: sets"), MofNCompleteColumn(), BarColumn(), TimeElapsedColumn(),
+                   TextColumn("<"), TimeRemainingColumn(), console=err_console,
+                   disable=quiet or not err_console.is_terminal or total == 0)
+    task = bar.add_task("sets", total=total)
+    done = [0]
+
+    def advance(_: int) -> None:
+        done[0] += 1
+        bar.update(task, completed=done[0])
+        if not quiet and not err_console.is_terminal:
+            err_console.print(f"evaluated set {done[0]}/{total}", highlight=False)
+
+    with bar:
+        yield advance
 
 
 def _metric_table(rows: list[dict], heads: dict[str, str], table: Table, ci: bool = True) -> Table:

@@ -7,6 +7,7 @@ the parser with one line and exit 2, before any data is read.
 from __future__ import annotations
 
 import math
+import time
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, Optional
@@ -386,17 +387,23 @@ def _interruptible(kept: str | Path, prints: bool = True):
 @contextmanager
 def _epoch_bar(total: int, quiet: bool):
     """Yields update(epoch, info, line): a rich bar on a terminal; in a log file, one line per `line`."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     # the bar starts with the first finished epoch, so an early error prints only its one line
-    bar = Progress(TextColumn("epoch"), MofNCompleteColumn(), BarColumn(), TimeRemainingColumn(),
-                   TextColumn("{task.fields[info]}"), console=err_console, disable=quiet)
+    bar = Progress(TextColumn("epoch"), MofNCompleteColumn(), BarColumn(), TimeElapsedColumn(), TextColumn("<"),
+                   TimeRemainingColumn(), TextColumn("{task.fields[info]}"), console=err_console, disable=quiet)
     task = bar.add_task("train", total=total, info="")
+    start = time.monotonic()
+    first = [None]  # the epoch this process began at (a resumed run starts past 0)
 
     def update(epoch: int, info: str, line: bool) -> None:
-        if not err_console.is_terminal:
-            if line and not quiet:
-                err_console.print(f"epoch {epoch}/{total} {info}", highlight=False)
+        if not err_console.is_terminal:  # a log: one line per epoch, with the time so far and an estimate of the rest
+            if not quiet:
+                first[0] = epoch - 1 if first[0] is None else first[0]
+                spent = time.monotonic() - start
+                left = spent / max(epoch - first[0], 1) * (total - epoch)
+                err_console.print(f"epoch {epoch}/{total} ({_clock(spent)} elapsed, {_clock(left)} left) {info}",
+                                  highlight=False)
             return
         bar.start()
         bar.update(task, completed=epoch, info=info)
@@ -406,6 +413,11 @@ def _epoch_bar(total: int, quiet: bool):
     finally:
         if bar.live.is_started:
             bar.stop()
+
+
+def _clock(seconds: float) -> str:
+    s = int(seconds)
+    return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}"
 
 
 SKIP = {"epoch", "seconds", "lr", "clips_per_s", "teacher", "vae"}
