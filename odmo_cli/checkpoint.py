@@ -330,7 +330,8 @@ def odmo_config(path: str | Path, config: dict) -> ODMOConfig:
 
 def _odmo_from(path: Path, ckpt: dict, device: torch.device | None = None, root: str | None = None) -> LoadedODMO:
     if "latent_bank" not in ckpt:
-        raise UserError(f"{path} has no latent bank: its training did not finish (resume it to the end)")
+        raise UserError(f"{path} has no latent bank: its training did not finish (resume it to the end, or stop "
+                        "it with Ctrl-C, which saves one)")
     # files written before the config named its skeleton take the dataset's, and decode their bones as
     # they were trained to (free) unless the file says otherwise
     cfg = odmo_config(path, {"skeleton": ckpt["dataset"].get("skeleton", ""), "bones": "free", **ckpt["config"]})

@@ -3,6 +3,7 @@ exact resume across a phase boundary."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from typer.testing import CliRunner
@@ -12,6 +13,7 @@ from odmo_cli.cli import app
 from odmo_cli.data.locate import resolve
 from odmo_cli.data.readers import read_dataset
 from odmo_cli.errors import UserError
+from odmo_cli.generation.generate import sample
 from odmo_cli.training.recipe import load_recipe, train_recipe
 
 RECIPE = """
@@ -103,6 +105,9 @@ def test_resume_across_a_phase_boundary_is_exact(recipe_file, lines_clips, tmp_p
     with pytest.raises(KeyboardInterrupt):
         train_recipe(lines_clips, recipe, cut, seed=1, progress=stop_after_4)
     assert load_checkpoint(cut)["recipe_phase"] == 1 and load_checkpoint(cut)["epoch"] == 1
+    # a stopped run samples as it is (its latent bank and modes were built when it stopped)
+    stopped = sample(load_model(cut), ["all"], 2, seed=0)
+    assert stopped.motions.shape[0] == 4 and np.isfinite(stopped.motions).all()
     train_recipe(lines_clips, recipe, cut, seed=1, resume=cut)
     a, b = load_checkpoint(whole)["state_dict"], load_checkpoint(cut)["state_dict"]
     assert all(torch.equal(a[k], b[k]) for k in a)

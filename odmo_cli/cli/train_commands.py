@@ -199,7 +199,7 @@ def train_odmo_cmd(
                      seed=seed, threads=threads)
     prints = _start(device, nproc)  # after the options' own checks, before any data is read
     clips = _clips(dataset, data)
-    with _epoch_bar(tc.epochs, as_json or not prints) as update, _interruptible(out, prints):
+    with _epoch_bar(tc.epochs, as_json or not prints) as update, _interruptible(out, prints, odmo=True):
         result = train_odmo(clips, tc, out, overrides, resume, _log_progress(update, tc.val_every), preset, device, init)
     if not prints:
         return
@@ -277,7 +277,7 @@ def _train_recipe(path: Path, dataset: str, data, out: Path, resume, threads: in
     recipe = load_recipe(path)
     prints = _start(device, nproc)
     clips = _clips(dataset or recipe.dataset or "humanact12", data)
-    with _epoch_bar(recipe.epochs, as_json or not prints) as update, _interruptible(out, prints):
+    with _epoch_bar(recipe.epochs, as_json or not prints) as update, _interruptible(out, prints, odmo=True):
         result = train_recipe(clips, recipe, out, seed, resume, _log_progress(update, recipe.train.get("val_every", 10)),
                               device, threads)
     if not prints:
@@ -371,11 +371,13 @@ def _print_result(result) -> None:
 
 
 @contextmanager
-def _interruptible(kept: str | Path, prints: bool = True):
+def _interruptible(kept: str | Path, prints: bool = True, odmo: bool = False):
     """Ctrl-C during training: say what was kept (a checkpoint path: its last completed epoch; only
     rank 0 of several processes says it), exit 130 without a traceback."""
     if isinstance(kept, Path):
         kept = f"the last completed epoch is saved in {kept}"
+        if odmo:
+            kept += " with its latent bank and modes: it samples as it is, and --resume goes on exactly"
     try:
         yield
     except KeyboardInterrupt:

@@ -290,10 +290,14 @@ class Trainer:
             raise PeerStopped(f"another training process stopped; {kept}") from None
         return self.history
 
+    def stopped_extra(self, snapshot: dict) -> dict:
+        """What a model adds to the checkpoint of a stopped run (Ctrl-C), so that it can be used as it is."""
+        return {}
+
     def _keep_snapshot(self) -> None:
         if self._snapshot is not None:
             with _signals_held():
-                self.save(state=self._snapshot)
+                self.save(self.stopped_extra(self._snapshot) if self.is_writer else {}, state=self._snapshot)
 
 
 @contextmanager

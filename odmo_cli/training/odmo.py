@@ -11,6 +11,7 @@ for the whole batch and computes its share of the pairs (training/distributed.py
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -229,6 +230,14 @@ class ODMOTrainer(Trainer):
     def load_extra_state(self, ckpt: dict) -> None:
         self.init = ckpt.get("init")
         self.phase = int(ckpt.get("recipe_phase", 0))
+
+    def stopped_extra(self, snapshot: dict) -> dict:
+        """A stopped run's latent bank and mode mixtures, from the last completed epoch's weights: the file
+        samples, renders and evaluates as it is, and --resume still goes on exactly (it reads neither)."""
+        model = copy.deepcopy(self.model).cpu()
+        model.load_state_dict(snapshot["state_dict"])
+        bank = latent_bank(model, self.clips, self.train_idx)
+        return {"latent_bank": bank, "modes": fit_modes(bank, self.cfg.n_classes, seed=self.tc.seed)}
 
     def enter_phase(self, phase: int, cfg: ODMOConfig, tc: TrainConfig) -> None:
         """Go on to a recipe's next phase in the same run: its model values (loss weights and readouts;
