@@ -179,3 +179,18 @@ def test_cons_ground_leaves_the_decoders_root_height_free():
     labels = torch.tensor([0, 1, 0, 1])
     assert float(odmo_terms(out, motion, labels, ODMOConfig(cons="all"))["cons"]) > 0
     assert float(odmo_terms(out, motion, labels, ODMOConfig(cons="ground"))["cons"]) == 0
+
+
+def test_l_foot_on_all_axes_also_holds_a_planted_foots_height():
+    import torch
+
+    from odmo_cli.models.losses import foot_contact_error
+
+    sk = get_skeleton("cmu20")  # up is +y
+    real = torch.zeros(1, 10, 20, 3)
+    real[:, :, 0, 1], real[:, :, 12, 1], real[:, :, 13, 1] = 1.0, 1.0, 0.5  # root and hip at 1, knee 0.5: leg 1
+    bob = real.clone()
+    bob[:, :, list(sk.feet), 1] += 0.01 * (torch.arange(10) % 2)[None, :, None]  # planted feet bobbing 1 cm
+    args = (real, list(sk.feet), sk.legs[0][:3], 1, 1.0)
+    assert float(foot_contact_error(bob, *args)) == 0.0
+    assert float(foot_contact_error(bob, *args, vertical=True)) == pytest.approx(4 * 9 * 0.01 ** 2 / 9, rel=1e-4)

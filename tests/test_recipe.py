@@ -124,3 +124,13 @@ def test_odmo_train_recipe_on_the_command_line(recipe_file, lines_folder, tmp_pa
     r = CliRunner().invoke(app, ["train", "--recipe", str(recipe_file), "--dataset", str(lines_folder),
                                  "--lr", "0.1", "--out", str(out)])
     assert r.exit_code == 2 and "--lr" in r.output and "recipe" in r.output
+
+
+@pytest.mark.parametrize("name", ["humanact12", "cmu_mocap"])
+def test_the_projects_recipes_read(name):
+    from pathlib import Path
+
+    recipe = load_recipe(Path(__file__).resolve().parents[1] / "recipes" / f"{name}.toml")
+    assert recipe.dataset == name and recipe.phases and recipe.budget_hours == 6.0
+    for i in range(len(recipe.phases)):
+        recipe.train_config(i)  # every phase is a valid TrainConfig

@@ -146,13 +146,14 @@ def contact_labels(motion: torch.Tensor, feet: list[int], leg: tuple[int, int, i
 
 
 def foot_contact_error(pred: torch.Tensor, target: torch.Tensor, feet: list[int], leg: tuple[int, int, int],
-                       up_axis: int, up_sign: float) -> torch.Tensor:
-    """How far pred's (B, T, J, 3) foot joints slide on the ground plane where the target clip's are
-    planted (contact_labels): the squared frame-to-frame displacement in leg lengths, summed over the
-    planted steps and averaged over the frames: (B,). 0 for feet that stay where the clip's stay."""
+                       up_axis: int, up_sign: float, vertical: bool = False) -> torch.Tensor:
+    """How far pred's (B, T, J, 3) foot joints slide on the ground plane (with `vertical`, move at all)
+    where the target clip's are planted (contact_labels): the squared frame-to-frame displacement in leg
+    lengths, summed over the planted steps and averaged over the frames: (B,). 0 for feet that stay where
+    the clip's stay. A planted foot that keeps its height too ties the root's height to the legs' bend."""
     planted, length = contact_labels(target, feet, leg, up_axis, up_sign)
-    ground = [i for i in range(3) if i != up_axis]
-    step = pred[:, 1:, feet][..., ground] - pred[:, :-1, feet][..., ground]  # (B, T-1, F, 2)
+    axes = [0, 1, 2] if vertical else [i for i in range(3) if i != up_axis]
+    step = pred[:, 1:, feet][..., axes] - pred[:, :-1, feet][..., axes]  # (B, T-1, F, 2 or 3)
     slide = step.pow(2).sum(-1) / length[:, None, None].pow(2)
     return (slide * planted).sum(dim=(1, 2)) / planted.shape[1]
 
@@ -208,7 +209,7 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
     if cfg.foot_weight and cfg.skeleton:
         sk = SKELETONS[cfg.skeleton]
         l_foot = foot_contact_error(drawn_motion(out, cfg), motion, list(sk.feet), sk.legs[0][:3], cfg.up_axis,
-                                    sk.up_sign)
+                                    sk.up_sign, vertical=cfg.foot_axes == "all")
     half = len(motion) // 2
     l_mix = motion.new_zeros(half)  # per pair; 0 for pairs of two actions, which are not mixed
     if "mix_motion" in out:

@@ -109,6 +109,7 @@ class ODMOConfig(Config):
     # paper nor the release; needs `skeleton`). The body and the path come from two networks; nothing else
     # asks a planted foot's motion about the root to cancel the root's travel.
     foot_weight: float = 0.0
+    foot_axes: str = "ground"  # what L_foot holds still: the slide on the "ground" plane, or "all" three axes
     # what L_cons ties to the trajectory: "all" the pose decoder's root (the paper and the release), or
     # "ground" its path on the ground plane only, leaving the root's height (a run's bounce) to the decoder,
     # which sees the previous poses, where the trajectory generator draws the whole path at once
@@ -123,6 +124,8 @@ class ODMOConfig(Config):
             raise ValueError(f"root must be one of {', '.join(ROOTS)}, got {self.root!r}")
         if self.pose_frame not in POSE_FRAMES:
             raise ValueError(f"pose_frame must be one of {', '.join(POSE_FRAMES)}, got {self.pose_frame!r}")
+        if self.foot_axes not in ("ground", "all"):
+            raise ValueError(f"foot_axes must be ground or all, got {self.foot_axes!r}")
         if self.cons not in CONS:
             raise ValueError(f"cons must be one of {', '.join(CONS)}, got {self.cons!r}")
         if self.foot_weight < 0:
