@@ -39,3 +39,20 @@ def test_a_shipped_model_samples_rigid_bodies_that_export_exactly(tmp_path):
     assert bone_variation(batch.motions, sk.parents).max() < 1e-4  # float32 rounding of metres
     report = export_motions(batch.motions, batch.actions, sk, 20.0, tmp_path / "bvh")
     assert report.max_error_mm < 0.1 and report.max_stretch_mm < 0.1
+
+
+def test_l_bone_is_zero_for_the_clips_body_and_the_squared_stretch_otherwise():
+    from odmo_cli.models.losses import bone_length_error
+
+    sk = get_skeleton("cmu20")
+    g = torch.Generator().manual_seed(0)
+    rest = torch.randn(20, 3, generator=g)
+    real = rest.expand(2, 8, 20, 3).clone()  # a rigid body, still
+    assert torch.allclose(bone_length_error(real + 0.3, real, sk.parents, sk.legs[0][:3]), torch.zeros(2), atol=1e-6)
+    grown = real.clone()
+    grown[:, :, 13:16] += (real[:, :, 13] - real[:, :, 12])[:, :, None] * 0.5  # the left thigh half as long again
+    child = [j for j, p in enumerate(sk.parents) if p >= 0]
+    thigh = float((rest[13] - rest[12]).norm())
+    leg = thigh + float((rest[14] - rest[13]).norm())
+    expected = (0.5 * thigh / leg) ** 2 / len(child)  # one bone of 19 off by half its length, at every frame
+    assert torch.allclose(bone_length_error(grown, real, sk.parents, sk.legs[0][:3]), torch.full((2,), expected), rtol=1e-4)

@@ -158,6 +158,19 @@ def foot_contact_error(pred: torch.Tensor, target: torch.Tensor, feet: list[int]
     return (slide * planted).sum(dim=(1, 2)) / planted.shape[1]
 
 
+def bone_length_error(pred: torch.Tensor, target: torch.Tensor, parents, leg: tuple[int, int, int]) -> torch.Tensor:
+    """How far each bone of pred (B, T, J, 3) is from the target clip's length for it (its median over the
+    clip's frames), squared, in leg lengths, averaged over bones and frames: (B,). 0 for a body of the
+    clip's size that keeps it; what a decoder of joint positions otherwise lets stretch."""
+    child = [j for j, p in enumerate(parents) if p >= 0]
+    par = [parents[j] for j in child]
+    pred_len = (pred[:, :, child] - pred[:, :, par]).norm(dim=-1)  # (B, T, J-1)
+    real_len = (target[:, :, child] - target[:, :, par]).norm(dim=-1).median(dim=1).values  # (B, J-1)
+    hip, knee, ankle = leg
+    length = real_len[:, child.index(knee)] + real_len[:, child.index(ankle)]  # (B,): hip-knee and knee-ankle bones
+    return ((pred_len - real_len[:, None]) / length[:, None, None]).pow(2).mean(dim=(1, 2))
+
+
 def drawn_motion(out: dict, cfg) -> torch.Tensor:
     """The motion (B, T, J, 3) sampling draws of this batch: the free-running decode when there is one,
     else the teacher-forced, its root read as cfg.root says (ODMO.decode)."""
@@ -210,6 +223,10 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
         sk = SKELETONS[cfg.skeleton]
         l_foot = foot_contact_error(drawn_motion(out, cfg), motion, list(sk.feet), sk.legs[0][:3], cfg.up_axis,
                                     sk.up_sign, vertical=cfg.foot_axes == "all")
+    l_bone = motion.new_zeros(len(motion))
+    if cfg.bone_weight and cfg.skeleton:
+        sk = SKELETONS[cfg.skeleton]
+        l_bone = bone_length_error(out.get("free_motion", out["motion"]), motion, sk.parents, sk.legs[0][:3])
     half = len(motion) // 2
     l_mix = motion.new_zeros(half)  # per pair; 0 for pairs of two actions, which are not mixed
     if "mix_motion" in out:
@@ -231,6 +248,7 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
         "height": l_height.mean(),
         "mix_energy": l_mix.mean(),
         "foot": l_foot.mean(),
+        "bone": l_bone.mean(),
         "vae": standard_kl(mu, logvar).mean() * 2,
     }
 
@@ -251,6 +269,8 @@ def total_loss(terms: dict[str, torch.Tensor], cfg) -> torch.Tensor:
         recon = recon + cfg.mix_energy_weight * terms["mix_energy"]
     if cfg.foot_weight:
         recon = recon + cfg.foot_weight * terms["foot"]
+    if cfg.bone_weight:
+        recon = recon + cfg.bone_weight * terms["bone"]
     if cfg.use_traj:
         recon = recon + terms["r"]
     if cfg.use_cons:

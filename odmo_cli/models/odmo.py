@@ -110,6 +110,10 @@ class ODMOConfig(Config):
     # asks a planted foot's motion about the root to cancel the root's travel.
     foot_weight: float = 0.0
     foot_axes: str = "ground"  # what L_foot holds still: the slide on the "ground" plane, or "all" three axes
+    # weight of L_bone, each bone of the pose decoder's output (its free-running decode where there is one)
+    # against the real clip's length for it (losses.bone_length_error; not in the paper nor the release;
+    # needs `skeleton`): the cause of stretching limbs, where `bones = "rigid"` mends the output after it
+    bone_weight: float = 0.0
     # what L_cons ties to the trajectory: "all" the pose decoder's root (the paper and the release), or
     # "ground" its path on the ground plane only, leaving the root's height (a run's bounce) to the decoder,
     # which sees the previous poses, where the trajectory generator draws the whole path at once
@@ -130,8 +134,10 @@ class ODMOConfig(Config):
             raise ValueError(f"cons must be one of {', '.join(CONS)}, got {self.cons!r}")
         if self.foot_weight < 0:
             raise ValueError(f"foot_weight must be non-negative, got {self.foot_weight}")
-        if self.foot_weight and not self.skeleton:
-            raise ValueError("foot_weight needs the skeleton (its feet): set skeleton")
+        if self.bone_weight < 0:
+            raise ValueError(f"bone_weight must be non-negative, got {self.bone_weight}")
+        if (self.foot_weight or self.bone_weight) and not self.skeleton:
+            raise ValueError("foot_weight and bone_weight need the skeleton (its feet and bones): set skeleton")
         if self.bones not in BONES:
             raise ValueError(f"bones must be one of {', '.join(BONES)}, got {self.bones!r}")
         if self.skeleton and self.skeleton not in SKELETONS:
