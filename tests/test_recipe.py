@@ -134,3 +134,14 @@ def test_the_projects_recipes_read(name):
     assert recipe.dataset == name and recipe.phases and recipe.budget_hours == 6.0
     for i in range(len(recipe.phases)):
         recipe.train_config(i)  # every phase is a valid TrainConfig
+
+
+def test_one_default_rate_schedule_for_the_library_and_the_command_line():
+    from odmo_cli.training.odmo import TrainConfig
+
+    tc = TrainConfig(lr=3e-3, epochs=10)  # as `odmo train --lr 3e-3`: constant
+    assert [tc.learning_rate(e) for e in (0, 9)] == [3e-3, 3e-3]
+    decayed = TrainConfig(lr=3e-3, lr_final=1e-4, epochs=10)
+    assert decayed.learning_rate(9) == pytest.approx(1e-4)
+    with pytest.raises(UserError, match="learning rates must be positive"):
+        TrainConfig(lr_final=-1.0)

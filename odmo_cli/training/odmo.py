@@ -41,7 +41,7 @@ class TrainConfig(LoopConfig):
     epochs: int = 300
     batch_size: int = 256  # pairs per step (each step sees 2 x batch_size clips)
     lr: float = 1e-3
-    lr_final: float = 1e-3  # cosine decay from lr to lr_final over the epochs; equal = constant (paper)
+    lr_final: float = 0.0  # cosine decay from lr to lr_final over the epochs; 0 (or = lr): constant, the paper's
     tf_start: float = 1.0
     tf_end: float = 0.3
     tf_epochs: int = 0  # teacher forcing decays linearly over this many epochs (0: all epochs)
@@ -77,8 +77,8 @@ class TrainConfig(LoopConfig):
         if bad or (self.train_parts and not self.parts()):
             raise UserError(f"unknown part {(bad or [self.train_parts])[0]!r} to train; valid: {', '.join(PARTS)} "
                             "(comma-separated)")
-        if self.lr <= 0 or self.lr_final <= 0:
-            raise UserError(f"learning rates must be positive, got {self.lr} and {self.lr_final}")
+        if self.lr <= 0 or self.lr_final < 0:
+            raise UserError(f"learning rates must be positive (--lr-final 0: constant), got {self.lr} and {self.lr_final}")
         if not (0 <= self.tf_end <= 1 and 0 <= self.tf_start <= 1):
             raise UserError("teacher-forcing rates must be in [0, 1]")
         if self.free_from < -1:
