@@ -39,6 +39,7 @@ Conventions (all chosen here; the paper leaves them open)
 
 from __future__ import annotations
 
+import functools
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -561,40 +562,45 @@ def retarget(
 
 def rigid_bones(motion: torch.Tensor, parents: Sequence[int], lengths: torch.Tensor | None = None,
                 branches: dict[int, tuple[int, int, int]] | None = None) -> torch.Tensor:
-    """Motion (..., T, J, 3) with every bone at one length for all frames: each joint, in tree order,
-    placed at its parent's new position plus its own direction from the parent times the bone's length.
-    The root stays where it is and every bone keeps its direction, so only lengths change.
+    """Motion (..., T, J, 3) with every bone at one length for all frames: each joint at its parent's new
+    position plus its own direction from the parent times the bone's length. The root stays where it is
+    and every bone keeps its direction, so only lengths change.
 
     lengths (..., J): each joint's bone (the root's entry unused); default: each bone's median length
     over the frames of its motion (the body the motion draws, made rigid). branches {joint: (left,
     right, middle)}: joints whose three children move as one rigid piece (a pelvis with its hips and
     spine, a chest with its collars and neck), as in a body model and in BVH export: the children sit at
-    their mean offsets in the joint's body frame (lie.body_frame of the three directions), so the
-    angles between them stay fixed too. Differentiable; a bone of zero length keeps its child on the parent."""
+    their mean offsets in the joint's body frame (body_frame of the three directions), so the angles
+    between them stay fixed too. Differentiable; a bone of zero length keeps its child on the parent."""
     check_motion(motion, n_joints=len(parents))
-    if lengths is None:
-        lengths = bone_lengths(motion, parents).median(dim=-2).values  # (..., J-1)
-        full = motion.new_zeros(*lengths.shape[:-1], len(parents))
-        full[..., [j for j, p in enumerate(parents) if p >= 0]] = lengths
-        lengths = full
-    branches = branches or {}
-    joints: list = [None] * len(parents)
-    for j in [0, *_topological_order(parents)]:
-        p = parents[j]
-        if p < 0:
-            joints[j] = motion[..., j, :]
-        elif joints[j] is None:  # not already placed with its parent's rigid piece
-            d = motion[..., j, :] - motion[..., p, :]  # (..., T, 3)
-            joints[j] = joints[p] + _unit(d) * lengths[..., None, j:j + 1]
-        if j in branches:
-            kids = branches[j]
-            offsets = torch.stack([motion[..., c, :] - motion[..., j, :] for c in kids], dim=-1)  # (..., T, 3, 3)
-            frame = body_frame(_unit(offsets[..., 0]), _unit(offsets[..., 1]), _unit(offsets[..., 2]))  # (..., T, 3, 3)
-            local = (frame.transpose(-1, -2) @ offsets).mean(dim=-3, keepdim=True)  # (..., 1, 3, 3): the rigid piece
-            placed = frame @ local  # (..., T, 3, 3)
-            for k, c in enumerate(kids):
-                joints[c] = joints[j] + placed[..., k]
-    return torch.stack(joints, dim=-2)
+    child = torch.tensor([j for j, p in enumerate(parents) if p >= 0], device=motion.device)
+    parent = torch.tensor([parents[j] for j in child.tolist()], device=motion.device)
+    bones = motion.index_select(-2, child) - motion.index_select(-2, parent)  # (..., T, B, 3)
+    norm = torch.linalg.vector_norm(bones, dim=-1, keepdim=True)  # (..., T, B, 1)
+    size = norm[..., 0].median(dim=-2).values if lengths is None else lengths.index_select(-1, child)  # (..., B)
+    # (..., T, J, 3): each joint from its new parent (the root from itself: 0)
+    offsets = motion.new_zeros(motion.shape).index_copy(-2, child, bones / norm.clamp_min(1e-12) * size[..., None, :, None])
+    for j, kids in (branches or {}).items():
+        own = torch.stack([motion[..., c, :] - motion[..., j, :] for c in kids], dim=-1)  # (..., T, 3, 3)
+        frame = body_frame(_unit(own[..., 0]), _unit(own[..., 1]), _unit(own[..., 2]))  # (..., T, 3, 3)
+        local = (frame.transpose(-1, -2) @ own).mean(dim=-3, keepdim=True)  # (..., 1, 3, 3): the rigid piece
+        offsets[..., list(kids), :] = (frame @ local).transpose(-1, -2)  # (..., T, 3 kids, 3)
+    # every joint is the root plus the offsets along its path from the root: one product with the tree
+    path = _paths(tuple(parents)).to(motion)  # (J, J)
+    return motion[..., :1, :] + torch.einsum("jk,...kc->...jc", path, offsets)
+
+
+@functools.lru_cache(maxsize=None)
+def _paths(parents: tuple[int, ...]) -> torch.Tensor:
+    """(J, J): entry (j, k) is 1 when joint k lies on the path from the root to j (j itself included, the
+    root not)."""
+    out = torch.zeros(len(parents), len(parents))
+    for j in range(len(parents)):
+        k = j
+        while parents[k] >= 0:
+            out[j, k] = 1.0
+            k = parents[k]
+    return out
 
 
 def _unit(d: torch.Tensor) -> torch.Tensor:
