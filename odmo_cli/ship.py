@@ -104,7 +104,7 @@ RECIPES = {
     },
 }
 _KEEP = ("format_version", "kind", "config", "train_config", "dataset", "epoch", "latent_bank", "crop_bank", "modes", "report",
-         "init")
+         "init", "recipe", "recipe_phase")
 
 
 INT8_MIN_VALUES = 1 << 20  # matrices with at least this many values are stored as int8 rows
@@ -169,9 +169,11 @@ def total_epochs(name: str) -> int:
 
 
 def build(dataset: str, data, out_dir: Path, seed: int = 0, skip_classifier: bool = False,
-          progress: Callable | None = None, say: Callable[[str], None] = print) -> dict:
+          progress: Callable | None = None, say: Callable[[str], None] = print, recipe: Path | None = None) -> dict:
     """Train and write the shipped files for `dataset` into out_dir; returns both training reports
-    (ODMO's: its last stage's). `progress` counts ODMO's epochs over all stages."""
+    (ODMO's: its last stage's). `progress` counts ODMO's epochs over all stages. `recipe`: ODMO is
+    trained in one run of that recipe file's phases (training.recipe) instead of the stages below."""
+    recipe_file = recipe
     name = recipe_name(dataset)
     manifest, root = resolve(name, data)
     out_dir = Path(out_dir)
@@ -187,8 +189,28 @@ def build(dataset: str, data, out_dir: Path, seed: int = 0, skip_classifier: boo
         reports["classifier"] = train_classifier(clips, tc, work, resume=work if work.is_file() else None)
         save_checkpoint(out_dir / files["classifier"], compact_classifier(load_checkpoint(work)))
         work.unlink()
-    reports["odmo"] = _odmo_stages(clips, recipe, out_dir / files["odmo"], seed, progress, say)
+    if recipe_file is not None:
+        reports["odmo"] = _odmo_recipe(clips, recipe_file, out_dir / files["odmo"], seed, progress, say)
+    else:
+        reports["odmo"] = _odmo_stages(clips, recipe, out_dir / files["odmo"], seed, progress, say)
     return reports
+
+
+def _odmo_recipe(clips, path: Path, final: Path, seed: int, progress: Callable | None,
+                 say: Callable[[str], None]) -> dict:
+    """Train ODMO with a recipe file's phases into `final`'s training file beside it (resumed when it is
+    there: a run of another recipe or seed is refused), then write the compact file; the run's report."""
+    from odmo_cli.training.recipe import load_recipe, train_recipe
+
+    plan = load_recipe(path)
+    work = final.parent / f"{final.stem}.training.pt"
+    resume = work if work.is_file() else None
+    say(f"training ODMO on {clips.manifest.name} with {Path(path).name} ({len(plan.phases)} phases, {plan.epochs} epochs"
+        f"{', resuming ' + str(work) if resume else ''})")
+    result = train_recipe(clips, plan, work, seed, resume, progress)
+    save_checkpoint(final, compact(load_checkpoint(work)))
+    work.unlink()
+    return {"epochs": result.epochs, **result.report}
 
 
 def stage_settings(stage: dict, seed: int) -> dict:

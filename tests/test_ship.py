@@ -192,7 +192,7 @@ def test_build_chains_a_third_stage(lines_folder, tmp_path, monkeypatch):
     assert ckpt["train_config"]["lr_final"] == 1e-5 and ckpt["epoch"] == 1
     # a stage's "model" entry changes those config values only, on top of the file it started from
     assert ckpt["config"]["energy_weight"] == 0.3 and ckpt["config"]["free_energy_weight"] == 2.0  # the preset's
-    assert ckpt["init"]["source"] == "odmo_lines.stage2.pt" and ckpt["init"]["train_config"]["lr_final"] == 1e-3
+    assert ckpt["init"]["source"] == "odmo_lines.stage2.pt" and ckpt["init"]["train_config"]["lr_final"] == 0.0  # constant
     # a stage's seed_offset moves that stage's seed only
     assert ckpt["train_config"]["seed"] == 2 and ckpt["init"]["train_config"]["seed"] == 0
     assert ckpt["init"]["init"]["source"] == "odmo_lines.stage1.pt" and ckpt["init"]["init"]["epoch"] == 2
@@ -206,3 +206,22 @@ def test_stages_must_be_numbered_in_order():
         ["odmo", "odmo_stage2", "odmo_stage3"]
     with pytest.raises(ValueError, match="odmo_stage2, odmo_stage3"):
         ship._stages({"odmo": {}, "odmo_stage3": {}})
+
+
+def test_build_with_a_recipe_file_trains_one_run_and_keeps_the_recipe(lines_folder, tmp_path, monkeypatch):
+    from test_recipe import RECIPE  # tests/ is on the path (pytest's rootdir-less prepend import mode)
+
+    monkeypatch.setitem(ship.RECIPES, str(lines_folder), {"classifier": {"epochs": 1, "threads": 1, "speed": 1.0}})
+    monkeypatch.setitem(checkpoint.SHIPPED, str(lines_folder),
+                        {"short": "lines", "odmo": "odmo_lines.pt", "classifier": "classifier_lines.pt"})
+    path = tmp_path / "lines.toml"
+    path.write_text(RECIPE)
+    out = tmp_path / "out"
+    out.mkdir()
+    reports = ship.build(str(lines_folder), None, out, seed=2, skip_classifier=True, say=lambda m: None, recipe=path)
+    assert sorted(p.name for p in out.iterdir()) == ["odmo_lines.pt"]  # the training file removed
+    ckpt = torch.load(out / "odmo_lines.pt", weights_only=True)
+    assert ckpt["recipe_phase"] == 1 and ckpt["recipe"]["phases"][1]["name"] == "the pose decoder, planted feet"
+    assert {"optimizer", "rng"}.isdisjoint(ckpt) and ckpt["train_config"]["seed"] == 2
+    assert reports["odmo"]["epochs"] == 5 and reports["odmo"]["pairs"] == 200
+    assert len(sample(load_model(out / "odmo_lines.pt"), ["all"], 2, seed=0)) > 0

@@ -440,6 +440,7 @@ def ship_cmd(
     dataset: Annotated[str, typer.Argument(help="humanact12 or cmu_mocap (cmu).")],
     out: Annotated[Path, typer.Option("--out", help="Folder for the files (odmo_<name>.pt, classifier_<name>.pt).")],
     skip_classifier: Annotated[bool, typer.Option("--skip-classifier", help="Train ODMO only.", metavar="")] = False,
+    recipe: Annotated[Optional[Path], typer.Option("--recipe", help="Train ODMO in one run of this recipe file's phases (e.g. recipes/humanact12.toml) instead of the built-in stages.")] = None,
     data: DataOpt = None, seed: SeedOpt = 0, as_json: JsonOpt = False,
 ):
     """Rebuild the shipped models of a dataset from scratch with its recipe: the evaluation classifier
@@ -449,11 +450,13 @@ def ship_cmd(
     largest layer as int8 rows). Run it again after an interruption to continue where it stopped. The
     recipes' numbers: docs/training.md."""
     from odmo_cli.ship import build, recipe_name, total_epochs
+    from odmo_cli.training.recipe import load_recipe
 
-    with (_epoch_bar(total_epochs(recipe_name(dataset)), as_json) as update,
+    epochs = load_recipe(recipe).epochs if recipe is not None else total_epochs(recipe_name(dataset))
+    with (_epoch_bar(epochs, as_json) as update,
           _interruptible("run the same command again to continue the training")):
         reports = build(dataset, data, out, seed, skip_classifier, _log_progress(update, 10),
-                        say=lambda m: None if as_json else err_console.print(m, highlight=False))
+                        say=lambda m: None if as_json else err_console.print(m, highlight=False), recipe=recipe)
     if as_json:
         return print_json(reports)
     if "classifier" in reports:
