@@ -145,3 +145,30 @@ def test_one_default_rate_schedule_for_the_library_and_the_command_line():
     assert decayed.learning_rate(9) == pytest.approx(1e-4)
     with pytest.raises(UserError, match="learning rates must be positive"):
         TrainConfig(lr_final=-1.0)
+
+
+def test_a_recipe_leaves_the_datas_shapes_to_the_data(recipe_file):
+    recipe_file.write_text(RECIPE.replace("[model]\n", "[model]\nup_axis = 2\n"))
+    with pytest.raises(UserError, match="unknown key 'up_axis'"):
+        load_recipe(recipe_file)
+    recipe_file.write_text(RECIPE.replace('preset = "paper"', 'preset = "papr"'))
+    with pytest.raises(UserError, match="unknown preset 'papr'; valid: paper, release, odmo"):
+        load_recipe(recipe_file)
+
+
+def test_a_recipe_run_resumes_only_with_its_recipe(recipe_file, lines_clips, tmp_path):
+    from odmo_cli.training.odmo import TrainConfig, train_odmo
+
+    recipe = load_recipe(recipe_file)
+    cut = tmp_path / "cut.pt"
+
+    def stop(log):
+        if log["epoch"] == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train_recipe(lines_clips, recipe, cut, progress=stop)
+    with pytest.raises(UserError, match="resume it with --recipe"):
+        train_odmo(lines_clips, TrainConfig(epochs=3), tmp_path / "x.pt", resume=cut)
+    recipe_file.write_text(RECIPE.replace('preset = "paper"', 'preset = "paper"\nbudget_hours = 2.0'))  # a stated budget changes no training
+    train_recipe(lines_clips, load_recipe(recipe_file), cut, resume=cut)

@@ -571,7 +571,8 @@ def rigid_bones(motion: torch.Tensor, parents: Sequence[int], lengths: torch.Ten
     right, middle)}: joints whose three children move as one rigid piece (a pelvis with its hips and
     spine, a chest with its collars and neck), as in a body model and in BVH export: the children sit at
     their mean offsets in the joint's body frame (body_frame of the three directions), so the angles
-    between them stay fixed too. Differentiable; a bone of zero length keeps its child on the parent."""
+    between them stay fixed too, and at their mean offsets' lengths (`lengths` does not apply to them).
+    Differentiable; a bone of zero length keeps its child on the parent."""
     check_motion(motion, n_joints=len(parents))
     child = torch.tensor([j for j, p in enumerate(parents) if p >= 0], device=motion.device)
     parent = torch.tensor([parents[j] for j in child.tolist()], device=motion.device)

@@ -14,7 +14,9 @@ import torch
 import torch.nn.functional as F
 
 from odmo_cli.geometry.kinematics import root_velocities
+from odmo_cli.geometry.lie import rigid_bones, torso_branches
 from odmo_cli.geometry.skeletons import SKELETONS
+from odmo_cli.plausibility import CONTACT_HEIGHT  # the evaluation's contact, so the loss and the measure agree
 
 
 def contrastive(mu1: torch.Tensor, mu2: torch.Tensor, same: torch.Tensor, alpha: float,
@@ -129,14 +131,14 @@ def height_error(pred: torch.Tensor, target: torch.Tensor, up_axis: int, speed_f
             + torch.log((ap + amplitude_floor) / (at + amplitude_floor)).pow(2))
 
 
-CONTACT_HEIGHT = 0.0625  # leg lengths above a foot joint's lowest point: in contact (plausibility.CONTACT_HEIGHT)
 
 
 def contact_labels(motion: torch.Tensor, feet: list[int], leg: tuple[int, int, int], up_axis: int,
                    up_sign: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Where each foot joint of real clips (B, T, J, 3) stays planted: (B, T-1, F) bool, true for a step
     in which the joint is within CONTACT_HEIGHT leg lengths of its lowest point in the clip at both
-    frames (the evaluation's contact, plausibility.foot_contacts), and the clips' leg lengths (B,)."""
+    frames (the evaluation's contact, plausibility.foot_contacts, with each clip's own mean leg length
+    where the evaluation takes the dataset's median), and the clips' leg lengths (B,)."""
     hip, knee, ankle = leg
     length = ((motion[:, :, hip] - motion[:, :, knee]).norm(dim=-1)
               + (motion[:, :, knee] - motion[:, :, ankle]).norm(dim=-1)).mean(1)  # (B,)
@@ -173,15 +175,18 @@ def bone_length_error(pred: torch.Tensor, target: torch.Tensor, parents, leg: tu
 
 def drawn_motion(out: dict, cfg) -> torch.Tensor:
     """The motion (B, T, J, 3) sampling draws of this batch: the free-running decode when there is one,
-    else the teacher-forced, its root read as cfg.root says (ODMO.decode)."""
+    else the teacher-forced, its root read as cfg.root says and its bones as cfg.bones says (ODMO.decode)."""
     motion = out.get("free_motion", out["motion"])
-    if cfg.root == "decoder":
-        return motion
-    root = out["trajectory"][:, :, None]
-    if cfg.root == "ground":
-        up = cfg.up_axis
-        root = torch.cat([root[..., :up], motion[:, :, :1, up:up + 1], root[..., up + 1:]], dim=-1)
-    return motion - motion[:, :, :1] + root
+    if cfg.root != "decoder":
+        root = out["trajectory"][:, :, None]
+        if cfg.root == "ground":
+            up = cfg.up_axis
+            root = torch.cat([root[..., :up], motion[:, :, :1, up:up + 1], root[..., up + 1:]], dim=-1)
+        motion = motion - motion[:, :, :1] + root
+    if cfg.bones == "rigid" and cfg.skeleton:  # the projection moves the feet: L_foot sees them where sampling puts them
+        sk = SKELETONS[cfg.skeleton]
+        motion = rigid_bones(motion, sk.parents, branches=torso_branches(sk))
+    return motion
 
 
 def drawn_root(out: dict, cfg) -> torch.Tensor:
@@ -209,6 +214,8 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
     else:
         l_mre = sequence_error(out["motion"], motion, w)
     if cfg.cons == "ground":  # the path on the ground plane only: the decoder's root height is its own
+        # (the mean over two axes, not three: each ground axis weighs 1.5 times what it does with "all",
+        # as measured in docs/lab/planted-feet.md)
         ground = [i for i in range(3) if i != cfg.up_axis]
         l_cons = sequence_error(out["trajectory"][..., ground], out["motion"][:, :, 0, ground])
     else:

@@ -295,9 +295,19 @@ class Trainer:
         return {}
 
     def _keep_snapshot(self) -> None:
-        if self._snapshot is not None:
+        if self._snapshot is None:
+            return
+        with _signals_held():
+            self.save(state=self._snapshot)  # first the epoch itself: what follows may be slow, or fail
+        if not self.is_writer:
+            return
+        try:  # a second Ctrl-C here leaves the file saved just above
+            extra = self.stopped_extra(self._snapshot)
+        except (KeyboardInterrupt, Exception):  # noqa: BLE001 - the saved epoch stands without the extras
+            return
+        if extra:
             with _signals_held():
-                self.save(self.stopped_extra(self._snapshot) if self.is_writer else {}, state=self._snapshot)
+                self.save(extra, state=self._snapshot)
 
 
 @contextmanager

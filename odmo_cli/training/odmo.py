@@ -11,7 +11,6 @@ for the whole batch and computes its share of the pairs (training/distributed.py
 
 from __future__ import annotations
 
-import copy
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -234,7 +233,7 @@ class ODMOTrainer(Trainer):
     def stopped_extra(self, snapshot: dict) -> dict:
         """A stopped run's latent bank and mode mixtures, from the last completed epoch's weights: the file
         samples, renders and evaluates as it is, and --resume still goes on exactly (it reads neither)."""
-        model = copy.deepcopy(self.model).cpu()
+        model = ODMO(self.cfg)  # on the CPU, from the snapshot: the live model may be on a GPU, or mid-epoch
         model.load_state_dict(snapshot["state_dict"])
         bank = latent_bank(model, self.clips, self.train_idx)
         return {"latent_bank": bank, "modes": fit_modes(bank, self.cfg.n_classes, seed=self.tc.seed)}
@@ -249,6 +248,7 @@ class ODMOTrainer(Trainer):
         # the last phase's gradients would otherwise stay on the parts this phase freezes, and count in clipping
         self.model.zero_grad(set_to_none=True)
         self.optimizers = self.build_optimizers()
+        self.net = self.group.wrap(self.model)  # several processes: the wrapper syncs the networks this phase trains
         self.epoch = 0
         self.setup()
 
@@ -394,6 +394,8 @@ def train_odmo(clips: ClipSet, tc: TrainConfig, out: Path, overrides: dict | Non
         raise UserError("give either --init (start a new stage from a model's weights) or --resume, not both")
     with thread_count(tc.threads), training_group(device) as group:
         if resume is not None:
+            if "recipe" in load_checkpoint(resume):
+                raise UserError(f"{resume} is a recipe run's checkpoint: resume it with --recipe and the same file")
             trainer = ODMOTrainer.resumed(resume, clips, tc, out, group)
         elif init is not None:
             ckpt = load_checkpoint(init)

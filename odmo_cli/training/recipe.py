@@ -40,6 +40,8 @@ PHASE = ("name", "model")
 PHASE_MODEL = ("alpha", "sigma2", "same_class_deadzone", "recon_weight", "use_es", "use_traj", "use_cons",
                "up_weight", "traj_loss", "vel_weight", "energy_weight", "free_energy_weight", "height_weight",
                "mix_energy_weight", "root", "pose_loss", "bones", "foot_weight", "foot_axes", "bone_weight", "cons")
+# what the data sets (training.loop.dataset_shapes): a recipe serves any dataset
+DATA_SHAPES = ("n_joints", "n_classes", "length", "skeleton", "up_axis")
 # the split is the run's: a phase on another split would validate on clips it trained on
 RUN_ONLY = ("val_fraction", "split_seed", "seed", "threads")
 
@@ -118,7 +120,7 @@ def load_recipe(path: str | Path) -> Recipe:
     model_fields = [f.name for f in fields(ODMOConfig)]
     train_fields = [f.name for f in fields(TrainConfig)]
     model, train = _table(f"{name} [model]", raw.get("model", {})), _table(f"{name} [train]", raw.get("train", {}))
-    _refuse_unknown(f"{name} [model]", model, model_fields)
+    _refuse_unknown(f"{name} [model]", model, [k for k in model_fields if k not in DATA_SHAPES])
     _refuse_unknown(f"{name} [train]", train, [k for k in train_fields if k not in ("seed", "epochs")])
     phases = []
     raw_phases = raw.get("phases")
@@ -133,8 +135,12 @@ def load_recipe(path: str | Path) -> Recipe:
         pm = _table(f"{where} [phases.model]", p.get("model", {}))
         _refuse_unknown(f"{where} [phases.model]", pm, PHASE_MODEL)
         phases.append(Phase(str(p.get("name", f"phase {i + 1}")), {k: v for k, v in p.items() if k not in PHASE}, pm))
-    recipe = Recipe(str(path), raw.get("dataset"), str(raw.get("preset", "odmo")), model, train, phases,
-                    raw.get("budget_hours"))
+    from odmo_cli.models.odmo import PRESETS
+
+    preset = str(raw.get("preset", "odmo"))
+    if preset not in PRESETS:
+        raise UserError(f"{name}: unknown preset {preset!r}; valid: {', '.join(PRESETS)}")
+    recipe = Recipe(str(path), raw.get("dataset"), preset, model, train, phases, raw.get("budget_hours"))
     for i in range(len(phases)):  # every phase's configs are built once here, so errors come before training
         try:
             recipe.train_config(i)
@@ -162,7 +168,8 @@ def train_recipe(clips, recipe: Recipe, out: Path, seed: int = 0, resume: Path |
         if "recipe" not in ckpt or "rng" not in ckpt:
             raise UserError(f"cannot resume {resume} with --recipe: it is not a recipe run's training checkpoint")
         saved = Recipe.from_dict(ckpt["recipe"])
-        if saved.to_dict() | {"source": ""} != recipe.to_dict() | {"source": ""}:
+        same = {"source": "", "budget_hours": None}  # where the file lies and the budget it states change no training
+        if saved.to_dict() | same != recipe.to_dict() | same:
             raise UserError(f"{resume} was trained with another recipe than {Path(recipe.source).name}; "
                             "resume it with the recipe it was started with")
         if int(ckpt["train_config"]["seed"]) != seed:
