@@ -169,11 +169,10 @@ def total_epochs(name: str) -> int:
 
 
 def build(dataset: str, data, out_dir: Path, seed: int = 0, skip_classifier: bool = False,
-          progress: Callable | None = None, say: Callable[[str], None] = print, recipe: Path | None = None) -> dict:
+          progress: Callable | None = None, say: Callable[[str], None] = print, recipe_file: Path | None = None) -> dict:
     """Train and write the shipped files for `dataset` into out_dir; returns both training reports
-    (ODMO's: its last stage's). `progress` counts ODMO's epochs over all stages. `recipe`: ODMO is
+    (ODMO's: its last stage's). `progress` counts ODMO's epochs over all stages. `recipe_file`: ODMO is
     trained in one run of that recipe file's phases (training.recipe) instead of the stages below."""
-    recipe_file = recipe
     name = recipe_name(dataset)
     manifest, root = resolve(name, data)
     out_dir = Path(out_dir)

@@ -218,7 +218,7 @@ def test_build_with_a_recipe_file_trains_one_run_and_keeps_the_recipe(lines_fold
     path.write_text(RECIPE)
     out = tmp_path / "out"
     out.mkdir()
-    reports = ship.build(str(lines_folder), None, out, seed=2, skip_classifier=True, say=lambda m: None, recipe=path)
+    reports = ship.build(str(lines_folder), None, out, seed=2, skip_classifier=True, say=lambda m: None, recipe_file=path)
     assert sorted(p.name for p in out.iterdir()) == ["odmo_lines.pt"]  # the training file removed
     ckpt = torch.load(out / "odmo_lines.pt", weights_only=True)
     assert ckpt["recipe_phase"] == 1 and ckpt["recipe"]["phases"][1]["name"] == "the pose decoder, planted feet"

@@ -456,7 +456,7 @@ def ship_cmd(
     with (_epoch_bar(epochs, as_json) as update,
           _interruptible("run the same command again to continue the training")):
         reports = build(dataset, data, out, seed, skip_classifier, _log_progress(update, 10),
-                        say=lambda m: None if as_json else err_console.print(m, highlight=False), recipe=recipe)
+                        say=lambda m: None if as_json else err_console.print(m, highlight=False), recipe_file=recipe)
     if as_json:
         return print_json(reports)
     if "classifier" in reports:

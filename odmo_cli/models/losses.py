@@ -13,9 +13,9 @@ import math
 import torch
 import torch.nn.functional as F
 
-from odmo_cli.geometry.kinematics import root_velocities
-from odmo_cli.geometry.lie import rigid_bones, torso_branches
+from odmo_cli.geometry.kinematics import bone_lengths, root_velocities
 from odmo_cli.geometry.skeletons import SKELETONS
+from odmo_cli.models.odmo import read_out
 from odmo_cli.plausibility import CONTACT_HEIGHT  # the evaluation's contact, so the loss and the measure agree
 
 
@@ -165,9 +165,8 @@ def bone_length_error(pred: torch.Tensor, target: torch.Tensor, parents, leg: tu
     clip's frames), squared, in leg lengths, averaged over bones and frames: (B,). 0 for a body of the
     clip's size that keeps it; what a decoder of joint positions otherwise lets stretch."""
     child = [j for j, p in enumerate(parents) if p >= 0]
-    par = [parents[j] for j in child]
-    pred_len = (pred[:, :, child] - pred[:, :, par]).norm(dim=-1)  # (B, T, J-1)
-    real_len = (target[:, :, child] - target[:, :, par]).norm(dim=-1).median(dim=1).values  # (B, J-1)
+    pred_len = bone_lengths(pred, parents)  # (B, T, J-1)
+    real_len = bone_lengths(target, parents).median(dim=1).values  # (B, J-1)
     hip, knee, ankle = leg
     length = real_len[:, child.index(knee)] + real_len[:, child.index(ankle)]  # (B,): hip-knee and knee-ankle bones
     return ((pred_len - real_len[:, None]) / length[:, None, None]).pow(2).mean(dim=(1, 2))
@@ -175,18 +174,8 @@ def bone_length_error(pred: torch.Tensor, target: torch.Tensor, parents, leg: tu
 
 def drawn_motion(out: dict, cfg) -> torch.Tensor:
     """The motion (B, T, J, 3) sampling draws of this batch: the free-running decode when there is one,
-    else the teacher-forced, its root read as cfg.root says and its bones as cfg.bones says (ODMO.decode)."""
-    motion = out.get("free_motion", out["motion"])
-    if cfg.root != "decoder":
-        root = out["trajectory"][:, :, None]
-        if cfg.root == "ground":
-            up = cfg.up_axis
-            root = torch.cat([root[..., :up], motion[:, :, :1, up:up + 1], root[..., up + 1:]], dim=-1)
-        motion = motion - motion[:, :, :1] + root
-    if cfg.bones == "rigid" and cfg.skeleton:  # the projection moves the feet: L_foot sees them where sampling puts them
-        sk = SKELETONS[cfg.skeleton]
-        motion = rigid_bones(motion, sk.parents, branches=torso_branches(sk))
-    return motion
+    else the teacher-forced, read out as ODMO.decode reads it (its root and bones as cfg says)."""
+    return read_out(out.get("free_motion", out["motion"]), out["trajectory"], cfg)
 
 
 def drawn_root(out: dict, cfg) -> torch.Tensor:
@@ -225,15 +214,12 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
     l_free = energy_error(out["free_motion"], motion) if "free_motion" in out else motion.new_zeros(len(motion))
     l_height = (height_error(drawn_root(out, cfg), motion, cfg.up_axis) if cfg.height_weight
                 else motion.new_zeros(len(motion)))
-    l_foot = motion.new_zeros(len(motion))
-    if cfg.foot_weight and cfg.skeleton:
-        sk = SKELETONS[cfg.skeleton]
-        l_foot = foot_contact_error(drawn_motion(out, cfg), motion, list(sk.feet), sk.legs[0][:3], cfg.up_axis,
-                                    sk.up_sign, vertical=cfg.foot_axes == "all")
-    l_bone = motion.new_zeros(len(motion))
-    if cfg.bone_weight and cfg.skeleton:
-        sk = SKELETONS[cfg.skeleton]
-        l_bone = bone_length_error(out.get("free_motion", out["motion"]), motion, sk.parents, sk.legs[0][:3])
+    sk = SKELETONS.get(cfg.skeleton)  # the feet and bones of L_foot and L_bone (the config requires one for them)
+    l_foot = (foot_contact_error(drawn_motion(out, cfg), motion, list(sk.feet), sk.legs[0][:3], cfg.up_axis,
+                                 sk.up_sign, vertical=cfg.foot_axes == "all")
+              if cfg.foot_weight and sk else motion.new_zeros(len(motion)))
+    l_bone = (bone_length_error(out.get("free_motion", out["motion"]), motion, sk.parents, sk.legs[0][:3])
+              if cfg.bone_weight and sk else motion.new_zeros(len(motion)))
     half = len(motion) // 2
     l_mix = motion.new_zeros(half)  # per pair; 0 for pairs of two actions, which are not mixed
     if "mix_motion" in out:

@@ -317,6 +317,21 @@ class MotionGenerator(nn.Module):
         return torch.stack(outputs, dim=1)  # (B, T, P)
 
 
+def read_out(motion: torch.Tensor, trajectory: torch.Tensor, cfg: ODMOConfig) -> torch.Tensor:
+    """The pose decoder's motion (B, T, J, 3) as a model outputs it: its root as cfg.root says (on the
+    trajectory (B, T, 3), or on its path at the decoder's own height), its bones as cfg.bones says."""
+    if cfg.root != "decoder":
+        root = trajectory[:, :, None]  # (B, T, 1, 3)
+        if cfg.root == "ground":  # the decoder's own height over the path on the ground plane
+            up = cfg.up_axis
+            root = torch.cat([root[..., :up], motion[:, :, :1, up:up + 1], root[..., up + 1:]], dim=-1)
+        motion = motion - motion[:, :, :1] + root  # the same body about its root, on T-hat
+    if cfg.bones == "rigid" and cfg.skeleton:
+        skeleton = SKELETONS[cfg.skeleton]
+        motion = rigid_bones(motion, skeleton.parents, branches=torso_branches(skeleton))
+    return motion
+
+
 class ODMO(nn.Module):
     def __init__(self, cfg: ODMOConfig):
         super().__init__()
@@ -336,17 +351,7 @@ class ODMO(nn.Module):
         """Code (B, D), labels (B,), end point (B, 3) -> (trajectory (B, T, 3), motion (B, T, J, 3)),
         the motion's root as cfg.root says, its bones as cfg.bones says."""
         trajectory, prepared = self._plan(z, labels, end_point)
-        motion = self._poses(prepared, trajectory, target, teacher)
-        if self.cfg.root != "decoder":
-            root = trajectory[:, :, None]  # (B, T, 1, 3)
-            if self.cfg.root == "ground":  # the decoder's own height over the path on the ground plane
-                up = self.cfg.up_axis
-                root = torch.cat([root[..., :up], motion[:, :, :1, up:up + 1], root[..., up + 1:]], dim=-1)
-            motion = motion - motion[:, :, :1] + root  # the same body about its root, on T-hat
-        if self.cfg.bones == "rigid" and self.cfg.skeleton:
-            skeleton = SKELETONS[self.cfg.skeleton]
-            motion = rigid_bones(motion, skeleton.parents, branches=torso_branches(skeleton))
-        return trajectory, motion
+        return trajectory, read_out(self._poses(prepared, trajectory, target, teacher), trajectory, self.cfg)
 
     def _plan(self, z: torch.Tensor, labels: torch.Tensor, end_point: torch.Tensor) -> tuple[torch.Tensor, tuple]:
         """The trajectory (B, T, 3) and what the pose decoder's unrolls of it share."""
