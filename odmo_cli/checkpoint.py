@@ -29,8 +29,8 @@ import torch
 from odmo_cli.data.manifest import canonical_name, normalize_action
 from odmo_cli.errors import UserError
 from odmo_cli.io import atomic_path
-from odmo_cli.latent import ActionModes, fit_modes
 from odmo_cli.models import a2m, dvgan
+from odmo_cli.models.latent import ActionModes, fit_modes
 from odmo_cli.models.odmo import ODMO, ROOTS, ODMOConfig
 
 FORMAT_VERSION = 1  # bump when a reader of the old format would misread a new file
@@ -158,8 +158,52 @@ def restore_rng(state: dict, np_rng: np.random.Generator, torch_gen: torch.Gener
     return True
 
 
+# -- compact files: what `odmo ship` writes, and reading it back --------------------------------
+
+_KEEP = ("format_version", "kind", "config", "train_config", "dataset", "epoch", "latent_bank", "crop_bank", "modes", "report",
+         "init", "recipe", "recipe_phase")
+
+
+INT8_MIN_VALUES = 1 << 20  # matrices with at least this many values are stored as int8 rows
+
+
+def compact(ckpt: dict, int8_min_values: int = INT8_MIN_VALUES) -> dict:
+    """A finished checkpoint without what only training needs: weights as float16, and matrices of
+    at least `int8_min_values` values as int8 rows with a float32 scale each."""
+    out = {k: ckpt[k] for k in _KEEP if k in ckpt}
+    state, scales = {}, {}
+    for k, v in ckpt["state_dict"].items():
+        if v.is_floating_point() and v.dim() == 2 and v.numel() >= int8_min_values:
+            state[k], scales[k] = int8_rows(v)
+        else:
+            state[k] = v.half() if v.is_floating_point() else v
+    out["state_dict"] = state
+    out["int8_scales"] = scales
+    out["history"] = list(ckpt.get("history", []))[-1:]
+    out["weights_dtype"] = "float16" + (f"; int8 rows for {', '.join(scales)}" if scales else "")
+    return out
+
+
+def int8_rows(w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(R, K) float -> (R, K) int8 and (R, 1) float32 scales with w ~= q * scale, |q| <= 127.
+
+    The scales stay float32 (R values): in float16 the floor that keeps an all-zero row from
+    dividing by zero would underflow to 0.
+    """
+    w = w.float()
+    scale = (w.abs().amax(dim=1, keepdim=True) / 127).clamp_min(1e-12)
+    q = torch.round(w / scale).clamp(-127, 127).to(torch.int8)
+    return q, scale
+
+
+def compact_classifier(ckpt: dict) -> dict:
+    """A finished classifier checkpoint without its optimizer and RNG state; weights stay float32
+    (evaluation numbers must not move) and the split stays (`odmo eval --held-out` reads it)."""
+    return {k: v for k, v in ckpt.items() if k not in ("optimizer", "rng")}
+
+
 def float_state(ckpt: dict) -> dict:
-    """The checkpoint's state dict with int8 rows (shipped files, see ship.compact) turned back into
+    """The checkpoint's state dict with int8 rows (compact files, see compact) turned back into
     float32 matrices; float16 tensors load into float32 parameters as they are."""
     scales = ckpt.get("int8_scales") or {}
     return {k: v.float() * scales[k].float() if k in scales else v for k, v in ckpt["state_dict"].items()}
@@ -247,8 +291,8 @@ class LoadedODMO(Loaded):
     """ODMO with its latent bank and mode mixtures (built once, at load)."""
 
     bank: dict = field(default_factory=dict)  # codes (N, D), labels, end_points (N, 3), modes, names
-    modes: dict = field(default_factory=dict)  # plain values, as stored (latent.fit_modes)
-    crops: dict | None = None  # latent.crop_bank: what the mixtures and KNN end points are fitted on, where present
+    modes: dict = field(default_factory=dict)  # plain values, as stored (models.latent.fit_modes)
+    crops: dict | None = None  # generation.generate.crop_bank: what the mixtures and KNN end points are fitted on, where present
     mixtures: dict = field(init=False, repr=False)  # sampling -> [ActionModes per action]
 
     def __post_init__(self):
@@ -262,7 +306,7 @@ class LoadedODMO(Loaded):
 
     @property
     def k_rule(self) -> str:
-        """How the mixtures' number of modes was chosen (latent.K_RULES); files fitted before the
+        """How the mixtures' number of modes was chosen (models.latent.K_RULES); files fitted before the
         choice was recorded used the paper's rule."""
         return self.modes.get("rule", "paper")
 
@@ -323,7 +367,7 @@ def odmo_config(path: str | Path, config: dict) -> ODMOConfig:
     """The ODMOConfig a file's config describes; UserError naming the file if a value is invalid (a file
     written by hand or damaged: a nan loss weight, an unknown readout)."""
     try:
-        return ODMOConfig.from_dict(config)
+        return ODMOConfig.from_saved(config)
     except ValueError as e:
         raise UserError(f"{path} holds an invalid ODMO config: {e}") from None
 

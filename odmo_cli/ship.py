@@ -10,10 +10,9 @@ Compact means: no optimizer, RNG or split, the loss history cut to its last entr
 stored as float16 (loaded back into float32 parameters). Most of ODMO's weights are the trajectory
 generator's expand layer, (C*D + 3) x T(C*D + 3): 3.5 M of HumanAct12's 4.6 M values in the authors'
 architecture. Matrices that large are stored as int8 with one float32 scale per row (symmetric,
-|w| / 127 steps); `checkpoint.float_state` restores float32. Measured on the shipped HumanAct12 model (full
-protocol, 10 x 250; the file shipped on 2026-12-01): int8 rows for the expand layer leave Acc and FID unchanged (90.06 / 0.592 against
-90.06 / 0.593), while int8 for every matrix costs 1 point of Acc and raises FID to 0.764 (the
-autoregressive decoder amplifies the rounding), so only the large ones are rounded.
+|w| / 127 steps); `checkpoint.float_state` restores float32. Rounding that layer leaves the evaluation's
+figures where they were, while int8 for every matrix costs about a point of Acc (the autoregressive decoder
+amplifies the rounding), so only the large ones are rounded (docs/results.md, "The compact files").
 """
 
 from __future__ import annotations
@@ -22,9 +21,8 @@ import re
 from pathlib import Path
 from typing import Callable
 
-import torch
 
-from odmo_cli.checkpoint import SHIPPED, load_checkpoint, save_checkpoint
+from odmo_cli.checkpoint import SHIPPED, compact, compact_classifier, load_checkpoint, save_checkpoint
 from odmo_cli.data.locate import resolve
 from odmo_cli.data.manifest import canonical_name
 from odmo_cli.data.readers import read_dataset
@@ -32,35 +30,12 @@ from odmo_cli.errors import UserError
 from odmo_cli.training.classifier import ClassifierTrainConfig, train_classifier
 from odmo_cli.training.odmo import TrainConfig, train_odmo
 
-# The CPU recipes (docs/training.md): cosine-decayed Adam from a higher rate than the paper's
-# constant 1e-3, teacher forcing decayed over the first half; 2 threads. On HumanAct12 then a second
-# stage from the first stage's compact file: 100 epochs without teacher forcing (the decoder trained
-# as it samples), constant rate 3e-4, a fresh optimizer (on CMU MoCap the same stage measured worse),
-# then twice, each from the previous stage's compact file, 150 more such epochs with the rate decayed
-# 3e-4 -> 3e-5 (stages 3 and 4: each lowered the validation error and read better under both classifiers),
-# then 110 such epochs at batch 64 with L_energy and its free-running twin at 0.3 instead of 2 (stage 5:
-# the lowest validation error of five continuations whose validation speed and amplitude stay within
-# the quality bars), then that stage at the rate 3e-3 -> 3e-5 for 660 epochs and for 330, each
-# from the previous stage's compact file, at the build's seed + 1 (stages 6 and 7, of "the E line at seed 1":
-# kept by a rule on the validation split written before they ran, which they met; they replaced sixteen
-# stages 6-21 that took 0.71 M pairs more: docs/training.md), then twice 300 epochs training the pose decoder
-# alone, widened to 256 units, with its position loss about the root, at the build's seed + 2 (stages 8 and
-# 9, "S8H": they replaced a third E stage and one such stage, kept by the rule for decoder-only stages set
-# before they ran: the training clips' body at least 10% under the one stage's, the validation split's at most
-# 2% over; docs/training.md).
-# On CMU MoCap one later stage: 40 epochs with L_height (weight 3) on the trajectory generator's root,
-# training that network only (the encoder and pose decoder stay stage 1's), teacher forcing held at 0.3,
-# constant rate 1e-4, the build's seed + 3 (`seed_offset`: the seeds run before its rule was set are not
-# candidates; seed 3 was the first run of this shape under it, and met it on the validation split:
-# docs/results.md); then 330 epochs of the pose decoder alone at batch 64 without teacher forcing, the
-# rate decayed 1e-3 -> 3e-5, the preset's L_energy (stage 3: its decoder had had 2.6 k steps where the
-# release trains over 20 k; kept by a rule on the validation split's body error about the root); then
-# that stage twice more at 3e-3 -> 3e-5 (stages 4 and 5, kept together by a rule set before they ran: the
-# body error on the training clips 10% under stage 3's, the validation split's no worse than 2% over it);
-# then 200 epochs of that stage on each training clip's first crop, with the pose loss about the root
-# (stage 6, "CF6B": the crops sampling draws its codes from, and a loss that leaves their root paths to
-# the trajectory generator; kept by a rule on the validation split's body error set before it ran).
-# Classifier settings are those of the measured classifier runs (docs/evaluation.md).
+# The recipes (docs/training.md, "The shipped models' recipes"): per dataset, the classifier's settings and
+# ODMO's stages in order. Each stage after the first starts from the previous stage's compact file with a
+# fresh optimizer and its own schedule; "model" holds the ODMOConfig values it changes on top of that file,
+# "seed_offset" what it adds to the build's seed. Each stage was kept by a rule on the validation split set
+# before it ran; what it was measured against, and why, is in docs/lab/ (one page per stage group).
+# Classifier settings are those of the measured classifier runs (docs/lab/classifier.md).
 _FREE_STAGE = {"epochs": 100, "lr": 3e-4, "lr_final": 3e-4, "tf_start": 0.0, "tf_end": 0.0, "tf_epochs": 1,
                "free_from": 0, "threads": 2}
 _DECAYED_STAGE = {**_FREE_STAGE, "epochs": 150, "lr_final": 3e-5}
@@ -103,53 +78,11 @@ RECIPES = {
         "classifier": {"epochs": 100, "speed": 1.0, "threads": 1},
     },
 }
-_KEEP = ("format_version", "kind", "config", "train_config", "dataset", "epoch", "latent_bank", "crop_bank", "modes", "report",
-         "init", "recipe", "recipe_phase")
-
-
-INT8_MIN_VALUES = 1 << 20  # matrices with at least this many values are stored as int8 rows
-
-
-def compact(ckpt: dict, int8_min_values: int = INT8_MIN_VALUES) -> dict:
-    """A finished checkpoint without what only training needs: weights as float16, and matrices of
-    at least `int8_min_values` values as int8 rows with a float32 scale each."""
-    out = {k: ckpt[k] for k in _KEEP if k in ckpt}
-    state, scales = {}, {}
-    for k, v in ckpt["state_dict"].items():
-        if v.is_floating_point() and v.dim() == 2 and v.numel() >= int8_min_values:
-            state[k], scales[k] = int8_rows(v)
-        else:
-            state[k] = v.half() if v.is_floating_point() else v
-    out["state_dict"] = state
-    out["int8_scales"] = scales
-    out["history"] = list(ckpt.get("history", []))[-1:]
-    out["weights_dtype"] = "float16" + (f"; int8 rows for {', '.join(scales)}" if scales else "")
-    return out
-
-
-def int8_rows(w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(R, K) float -> (R, K) int8 and (R, 1) float32 scales with w ~= q * scale, |q| <= 127.
-
-    The scales stay float32 (R values): in float16 the floor that keeps an all-zero row from
-    dividing by zero would underflow to 0.
-    """
-    w = w.float()
-    scale = (w.abs().amax(dim=1, keepdim=True) / 127).clamp_min(1e-12)
-    q = torch.round(w / scale).clamp(-127, 127).to(torch.int8)
-    return q, scale
-
-
 def recipe_name(dataset: str) -> str:
     name = canonical_name(dataset)
     if name not in RECIPES:
         raise UserError(f"no shipping recipe for {dataset!r}; valid: {', '.join(RECIPES)}, cmu")
     return name
-
-
-def compact_classifier(ckpt: dict) -> dict:
-    """A finished classifier checkpoint without its optimizer and RNG state; weights stay float32
-    (evaluation numbers must not move) and the split stays (`odmo eval --held-out` reads it)."""
-    return {k: v for k, v in ckpt.items() if k not in ("optimizer", "rng")}
 
 
 _LATER_STAGE = re.compile(r"odmo_stage(\d+)")
@@ -185,7 +118,7 @@ def build(dataset: str, data, out_dir: Path, seed: int = 0, skip_classifier: boo
         say(f"training the {manifest.name} classifier ({recipe['classifier']['epochs']} epochs)")
         tc = ClassifierTrainConfig.from_dict({**recipe["classifier"], "seed": seed})
         work = out_dir / (Path(files["classifier"]).stem + ".training.pt")
-        reports["classifier"] = train_classifier(clips, tc, work, resume=work if work.is_file() else None)
+        reports["classifier"] = train_classifier(clips, tc, work, resume=work if work.is_file() else None).report
         save_checkpoint(out_dir / files["classifier"], compact_classifier(load_checkpoint(work)))
         work.unlink()
     if recipe_file is not None:
@@ -206,7 +139,7 @@ def _odmo_recipe(clips, path: Path, final: Path, seed: int, progress: Callable |
     resume = work if work.is_file() else None
     say(f"training ODMO on {clips.manifest.name} with {Path(path).name} ({len(plan.phases)} phases, {plan.epochs} epochs"
         f"{', resuming ' + str(work) if resume else ''})")
-    result = train_recipe(clips, plan, work, seed, resume, progress)
+    result = train_recipe(clips, plan, work, seed=seed, resume=resume, progress=progress)
     save_checkpoint(final, compact(load_checkpoint(work)))
     work.unlink()
     return {"epochs": result.epochs, **result.report}
@@ -220,8 +153,8 @@ def stage_settings(stage: dict, seed: int) -> dict:
 
 def stage_differences(train_config: dict, config: dict | None, stage: dict, seed: int) -> list[str]:
     """How a stage's recorded training config and model config differ from the recipe's stage in a build
-    with `seed` ("lr 0.001, not 0.003"); `config` None: not recorded (a stage before 2026-12-06 in a
-    file's init chain), so its model values are not compared. Threads are not compared: they change
+    with `seed` ("lr 0.001, not 0.003"); `config` None: not recorded (an older file's init chain
+    lacks it), so its model values are not compared. Threads are not compared: they change
     the speed, not the run."""
     wanted = {k: v for k, v in stage_settings(stage, seed).items() if k != "threads"}
     differ = [f"{k} {train_config.get(k)!r}, not {v!r}" for k, v in wanted.items() if train_config.get(k) != v]
@@ -264,8 +197,8 @@ def _odmo_stages(clips, recipe: dict, final: Path, seed: int, progress: Callable
         tc = TrainConfig(**stage_settings(recipe[key], seed))
         say(f"training ODMO on {clips.manifest.name}{f', stage {i + 1}' if i else ''} ({tc.epochs} epochs"
             f"{', resuming ' + str(work) if resume else ''})")
-        result = train_odmo(clips, tc, work, recipe[key].get("model"), resume=resume, progress=stage_progress,
-                            init=None if resume else start)
+        result = train_odmo(clips, tc, work, init=None if resume else start, overrides=recipe[key].get("model"),
+                            resume=resume, progress=stage_progress)
         save_checkpoint(done, compact(load_checkpoint(work)))
         work.unlink()
         report = {"epochs": result.epochs, **result.report, "train_config": tc.to_dict()}

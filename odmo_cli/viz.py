@@ -78,7 +78,7 @@ def _writer_for(out: Path, fps: float):
 def animate(motions: np.ndarray, skeleton: Skeleton, out: str | Path, fps: float = 20,
             titles: Sequence[str] | None = None, end_points: np.ndarray | None = None,
             trail: bool = False, cols: int | None = None, size: tuple[int, int] | None = None,
-            frame: int | None = None) -> tuple[Path, str]:
+            frame: int | None = None, frame_labels: Sequence[str] | None = None) -> tuple[Path, str]:
     """Write motions (N, T, J, 3) as one animation (a grid, one cell per motion).
 
     Each cell has a ground plane at the lowest foot height, the root trajectory on it, and the
@@ -86,6 +86,7 @@ def animate(motions: np.ndarray, skeleton: Skeleton, out: str | Path, fps: float
     `trail` the paths of the root, hands, feet and head so far are drawn. `.mp4` needs ffmpeg,
     else a GIF is written beside it; `.png` is a still of `frame` (default: the middle one).
     size: (width, height) of the output in pixels (default: 480 x 517 per cell, the whole at most 1920 wide).
+    frame_labels (T,): a label per frame (a composition's action), shown after each cell's title.
     Returns (the path written, a notice or "").
     """
     out = Path(out)
@@ -129,6 +130,10 @@ def animate(motions: np.ndarray, skeleton: Skeleton, out: str | Path, fps: float
             for line, j in zip(trail_lines, follow):
                 path = motion[: now + 1, j]
                 line.set_data_3d(path[:, 0], path[:, 1], path[:, 2])
+        if frame_labels is not None and len(frame_labels):
+            label = frame_labels[min(t, len(frame_labels) - 1)]
+            for i, ax in enumerate(axes):
+                ax.set_title(f"{titles[i]}: {label}" if titles else str(label), fontsize=8)
         return [ln for group in lines + trails for ln in group]
 
     cols_drawn = round(fig.get_size_inches()[0] / CELL_INCHES)
@@ -173,14 +178,18 @@ def render_samples(samples: str | Path, out: str | Path, index: int | None = Non
             raise UserError(f"--index {index} is out of range: {Path(samples).name} has {n} motions (0..{n - 1})")
         pick, cols = [index], None
     f = read_samples(samples, keys=("motions",), rows=slice(pick[0], pick[-1] + 1),
-                     optional=("actions", "end_points", "dataset"))
+                     optional=("actions", "end_points", "dataset", "frame_actions"))
     motions, ends = f["motions"], f["end_points"]
     actions = [str(a) for a in f["actions"]] if f["actions"] is not None else [""] * len(pick)
     skeleton, fps = get_skeleton(f["skeleton"]), f["fps"]
     titles = [f"{a} #{i}" for i, a in zip(pick, actions)]
+    labels = f["frame_actions"]  # a composition (odmo compose): the action of every frame
+    if labels is not None:
+        titles = [f"#{i}" for i in pick]
     if compare == "real":
-        if f["actions"] is None:
-            raise UserError(f"--compare real needs the motions' actions; {Path(samples).name} has none")
+        if f["actions"] is None or labels is not None:
+            raise UserError(f"--compare real needs each motion's one action; {Path(samples).name} has "
+                            + ("a sequence of actions (odmo compose)" if labels is not None else "none"))
         dataset = str(f["dataset"]) if f["dataset"] is not None else None
         real = real_examples(dataset, skeleton, actions, motions.shape[1], data, seed)
         cols = cols or len(motions)
@@ -189,7 +198,7 @@ def render_samples(samples: str | Path, out: str | Path, index: int | None = Non
         if ends is not None:
             ends = np.concatenate([ends, np.full((len(real), 3), np.nan, dtype=ends.dtype)])
     return animate(motions, skeleton, out, fps=fps, titles=titles, end_points=ends, trail=trail, cols=cols,
-                   size=pixels, frame=frame)
+                   size=pixels, frame=frame, frame_labels=labels)
 
 
 def real_examples(dataset: str | None, skeleton: Skeleton, actions: Sequence[str], length: int,

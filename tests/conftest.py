@@ -325,5 +325,5 @@ def lines_model(tmp_path_factory, lines_folder):
     # reconstruction weight, made for real data, miss the near end point by 0.02 instead of < 0.01
     # on this four-dimensional toy (measured once, seed 0)
     out = tmp_path_factory.mktemp("model") / "lines.pt"
-    train_odmo(clips, tc, out, overrides, preset="paper")
+    train_odmo(clips, tc, out, preset="paper", overrides=overrides)
     return out

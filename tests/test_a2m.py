@@ -19,7 +19,7 @@ from odmo_cli.checkpoint import describe_checkpoint, load_checkpoint
 from odmo_cli.data.dataset import crops_from_start
 from odmo_cli.errors import UserError
 from odmo_cli.geometry.lie import bone_lengths_from_pose, forward_kinematics, inverse_kinematics
-from odmo_cli.metrics import bone_length_consistency
+from odmo_cli.evaluation.metrics import bone_length_consistency
 from odmo_cli.models.a2m import A2M, A2MConfig, fold_root, paper_lambda_kl
 from odmo_cli.training.a2m import A2MTrainConfig, A2MTrainer, a2m_config_for, train_a2m
 
@@ -74,7 +74,7 @@ def test_optimizer_and_lambda_follow_the_config(clips):
 
 
 def test_bad_representation_is_a_user_error():
-    with pytest.raises(UserError, match="unknown representation 'quat'; valid: xyz, lie"):
+    with pytest.raises(UserError, match="representation must be one of xyz, lie, got 'quat'"):
         A2MConfig(representation="quat")
 
 
@@ -146,7 +146,7 @@ def test_checkpoint_samples_through_the_common_sampler(clips, tmp_path):
     from odmo_cli.generation.generate import sample
 
     out = tmp_path / "a2m.pt"
-    result = train_a2m(clips, tiny_tc(epochs=1, val_fraction=0.2), out, "lie", overrides=TINY)
+    result = train_a2m(clips, tiny_tc(epochs=1, val_fraction=0.2), out, representation="lie", overrides=TINY)
     assert result.report["representation"] == "lie" and result.report["held_out_clips"] > 0
     ckpt = load_checkpoint(out)  # weights_only
     assert ckpt["kind"] == "a2m" and ckpt["config"]["representation"] == "lie"

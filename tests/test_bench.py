@@ -15,22 +15,21 @@ from odmo_cli.cli import app
 def test_bench_sampling_reports_median_min_max(tmp_path):
     out = tmp_path / "bench.json"
     peer = tmp_path / "peer.py"  # stands in for ../shared/peer/bench_peer.py: one JSON line, as it prints
-    peer.write_text("import json, sys; a = sys.argv; "
-                    "print(json.dumps({'motions_per_s': 500.0, 'n': int(a[a.index('--n') + 1])}))\n")
+    asked = tmp_path / "asked.txt"  # the number of motions each of its runs was asked for
+    peer.write_text(f"import json, sys; a = sys.argv; n = int(a[a.index('--n') + 1]); "
+                    f"open({str(asked)!r}, 'a').write(f'{{n}}\\n'); "
+                    "print(json.dumps({'motions_per_s': 500.0, 'n': n}))\n")
     res = CliRunner().invoke(app, ["bench", "--only", "sampling", "--runs", "2", "--peer", str(peer), "--out", str(out)])
     assert res.exit_code == 0, res.output
     report = json.loads(out.read_text())
-    names = [f["name"] for f in report["figures"]]
-    assert names == ["model load", "sampling throughput (n = 996, T = 60)",
-                     "`odmo sample --action all --n 84` after load: codes, end points, networks, file",
-                     "the authors' networks alone, 1008 motions (bench_peer.py, same run)",
-                     "`odmo sample` over the authors' networks"]
-    figures = {f["name"]: f for f in report["figures"]}
+    # model load, sampling throughput, `odmo sample` after load, the authors' networks, and ours over theirs
+    load, throughput, ours, theirs, ratio = report["figures"]
+    assert [f["unit"] for f in report["figures"]] == ["s", "motions/s", "motions/s", "motions/s", "x"]
     for f in report["figures"]:
         assert f["runs"] == 2 and f["min"] <= f["median"] <= f["max"] and f["min"] > 0
-    for name in names[:3]:
-        assert figures[name]["note"] == ""  # the shipped model, not an untrained stand-in
-    ours, theirs, ratio = (figures[n] for n in names[2:])
+    for f in (load, throughput, ours):
+        assert f["note"] == ""  # the shipped model, not an untrained stand-in
+    assert asked.read_text().split() == ["1008", "1008"]  # as many motions as ours: 84 per action, 12 actions
     assert theirs["median"] == 500.0 and ratio["median"] == pytest.approx(ours["median"] / 500.0)
     assert report["machine"]["cores"] >= 1
 
@@ -53,8 +52,8 @@ def test_bench_evaluation_beside_the_authors_networks(tmp_path, monkeypatch):
     figures = bench.bench_evaluation(None, None, 2, torch.device("cpu"), peer)
     assert calls == [10, 10]
     ours, theirs, ratio = figures
-    assert ours.name.startswith("evaluation protocol, humanact12") and ours.unit == "s"
-    assert "600 motions" in theirs.name and theirs.runs == [600 / 500.0, 600 / 500.0]
+    assert ours.unit == "s" and len(ours.runs) == 2
+    assert theirs.runs == [600 / 500.0, 600 / 500.0]  # 10 repeats x 5 per action x 12 actions, at 500 a second
     assert ratio.runs == pytest.approx([a / 1.2 for a in ours.runs])
     assert len(bench.bench_evaluation(None, None, 1, torch.device("cpu"), None)) == 1  # no peer: no reference
 
@@ -62,7 +61,7 @@ def test_bench_evaluation_beside_the_authors_networks(tmp_path, monkeypatch):
 def test_bench_bad_part():
     res = CliRunner().invoke(app, ["bench", "--only", "gpu"])
     assert res.exit_code == 2
-    assert "unknown benchmark part 'gpu'; valid: sampling, end-to-end, training, evaluation" in res.stderr
+    assert "unknown benchmark part 'gpu'; valid: sampling, composition, end-to-end, training, evaluation" in res.stderr
 
 
 def test_bench_unknown_model(tmp_path):

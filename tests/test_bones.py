@@ -10,8 +10,8 @@ from odmo_cli.checkpoint import load_model
 from odmo_cli.formats.bvh import export_motions
 from odmo_cli.generation.generate import sample
 from odmo_cli.geometry.skeletons import get_skeleton
+from odmo_cli.measures.plausibility import bone_variation
 from odmo_cli.models.odmo import ODMO, ODMOConfig
-from odmo_cli.plausibility import bone_variation
 
 
 def decoded(bones: str, skeleton: str = "cmu20") -> np.ndarray:

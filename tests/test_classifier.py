@@ -205,7 +205,7 @@ def tiny_tc(**kw) -> ClassifierTrainConfig:
 def tiny_run(demo_clips, tmp_path_factory):
     out = tmp_path_factory.mktemp("clf") / "demo_classifier.pt"
     logs = []
-    report = train_classifier(demo_clips, tiny_tc(), out, progress=logs.append)
+    report = train_classifier(demo_clips, tiny_tc(), out, progress=logs.append).report
     return out, report, logs
 
 
@@ -249,7 +249,7 @@ def test_training_is_deterministic(demo_clips, tiny_run, tmp_path):
 def test_training_with_validation_split_and_options(demo_clips, tmp_path, options):
     logs = []
     report = train_classifier(demo_clips, tiny_tc(epochs=2, val_fraction=0.34, **options), tmp_path / "v.pt",
-                              progress=logs.append)
+                              progress=logs.append).report
     assert report["val_clips"] == 12 and report["train_clips"] == 24
     assert set(report["val_per_class"]) == set(demo_clips.manifest.action_names)
     assert all(np.isfinite(log["loss"]) for log in logs)
@@ -283,11 +283,11 @@ def test_resample_changes_playback_speed():
 
 
 @pytest.mark.parametrize("kw, message", [
-    ({"epochs": 0}, "epochs and batch size must be positive"),
-    ({"batch_size": -1}, "epochs and batch size must be positive"),
-    ({"lr": 0.0}, "learning rate must be positive"),
-    ({"val_fraction": 1.0}, r"validation fraction must be in \[0, 1\)"),
-    ({"sampling": "weighted"}, "unknown sampling 'weighted'; valid: shuffle, balanced"),
+    ({"epochs": 0}, "epochs must be positive"),
+    ({"batch_size": -1}, "batch_size must be positive"),
+    ({"lr": 0.0}, "lr must be positive"),
+    ({"val_fraction": 1.0}, r"val_fraction must be in \[0, 1\)"),
+    ({"sampling": "weighted"}, "sampling must be one of shuffle, balanced, length, got 'weighted'"),
     ({"dropout": 1.5}, "dropout must be in"),
     ({"speed": 0.5}, r"speed must be in \[1, 4\]"),
     ({"noise": -1.0}, "noise must not be negative"),

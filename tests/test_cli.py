@@ -96,14 +96,14 @@ def test_resume_without_epochs_keeps_the_runs_own_length(kind, tmp_path, monkeyp
 @pytest.mark.parametrize("kind, args, message", [
     # ODMO (`odmo train` without a kind is ODMO)
     (None, ["--ablate", "nope"], "unknown ablation 'nope'; valid: es, traj, cons, end-point"),
-    (None, ["--epochs", "0"], "epochs and batch size must be positive"),
+    (None, ["--epochs", "0"], "--epochs must be positive, got 0"),
     (None, ["--resume", "missing.pt"], "checkpoint not found"),
-    (None, ["--sigma2", "0"], "--sigma2 must be a finite number > 0, got 0.0"),
-    (None, ["--recon-weight", "-1"], "--recon-weight must be a finite number > 0, got -1.0"),
-    (None, ["--energy-weight", "-1"], "--energy-weight must be a finite number >= 0, got -1.0"),
+    (None, ["--sigma2", "0"], "--sigma2 must be a number > 0, got 0.0"),
+    (None, ["--recon-weight", "-1"], "--recon-weight must be a number > 0, got -1.0"),
+    (None, ["--energy-weight", "-1"], "--energy-weight must be a number >= 0, got -1.0"),
     # nan and inf fail no `x < bound` test: each is refused by name
-    (None, ["--sigma2", "inf"], "--sigma2 must be a finite number > 0, got inf"),
-    (None, ["--energy-weight", "nan"], "--energy-weight must be a finite number >= 0, got nan"),
+    (None, ["--sigma2", "inf"], "--sigma2 must be a finite number, got inf"),
+    (None, ["--energy-weight", "nan"], "--energy-weight must be a finite number, got nan"),
     (None, ["--lr", "nan"], "--lr must be a finite number, got nan"),
     (None, ["--weight-decay", "inf"], "--weight-decay must be a finite number, got inf"),
     ("a2m", ["--lr", "nan"], "--lr must be a finite number, got nan"),
@@ -115,15 +115,15 @@ def test_resume_without_epochs_keeps_the_runs_own_length(kind, tmp_path, monkeyp
     # Action2Motion
     ("a2m", ["--representation", "quat"], "unknown representation 'quat'; valid: xyz, lie"),
     ("a2m", ["--ablate", "es"], "--ablate does not apply to `odmo train a2m`"),
-    ("a2m", ["--epochs", "0"], "epochs and batch size must be positive"),
+    ("a2m", ["--epochs", "0"], "--epochs must be positive, got 0"),
     ("a2m", ["--n-critic", "5"], "--n-critic does not apply to `odmo train a2m`"),
     # DVGAN
     ("dvgan", ["--generator", "transformer"], "unknown DVGAN generator 'transformer'; valid: cnn, rnn"),
-    ("dvgan", ["--epochs", "0"], "epochs, batch size and n_critic must be positive"),
+    ("dvgan", ["--epochs", "0"], "--epochs must be positive, got 0"),
     ("dvgan", ["--resume", "missing.pt"], "checkpoint not found"),
-    ("dvgan", ["--n-critic", "0"], "epochs, batch size and n_critic must be positive"),
+    ("dvgan", ["--n-critic", "0"], "--n-critic must be positive, got 0"),
     # the classifier
-    ("classifier", ["--epochs", "0"], "epochs and batch size must be positive"),
+    ("classifier", ["--epochs", "0"], "--epochs must be positive, got 0"),
     ("classifier", ["--resume", "missing.pt"], "checkpoint not found"),
     # no such model
     ("gan", [], "unknown model 'gan'; valid: odmo, classifier, a2m, dvgan"),

@@ -52,7 +52,7 @@ def trained(demo_clips, tmp_path_factory):
     out = {}
     for g in ("cnn", "rnn"):
         path = tmp_path_factory.mktemp("dvgan") / f"{g}.pt"
-        out[g] = (path, train_dvgan(demo_clips, tiny_tc(), path, g, TINY))
+        out[g] = (path, train_dvgan(demo_clips, tiny_tc(), path, generator=g, overrides=TINY))
     return out
 
 
@@ -241,7 +241,8 @@ def test_odmo_does_not_complete(demo_clips, tmp_path):
     from odmo_cli.training.odmo import TrainConfig, train_odmo
 
     tc = TrainConfig(epochs=1, batch_size=8, pairs_per_epoch=8, val_fraction=0.0, val_every=0, checkpoint_every=0)
-    path = train_odmo(demo_clips, tc, tmp_path / "odmo.pt", {"motion_hidden": 8, "traj_hidden": 8, "encoder_fc": 8}).out
+    path = train_odmo(demo_clips, tc, tmp_path / "odmo.pt",
+                      overrides={"motion_hidden": 8, "traj_hidden": 8, "encoder_fc": 8}).out
     with pytest.raises(UserError, match="is ODMO, which does not complete; completion needs a DVGAN-RNN model"):
         generate.complete(checkpoint.load_model(path), np.zeros((30, 24, 3), np.float32), 5, ["walk"], 2)
 

@@ -1,4 +1,5 @@
-"""Mode discovery, sampling, interpolation and end-point customisation (issue: on-demand generation)."""
+"""Sampling, interpolation and end-point customisation (issue: on-demand generation), and the data the mode
+mixtures are fitted on; mode discovery itself is tested in test_latent.py."""
 
 from __future__ import annotations
 
@@ -14,87 +15,8 @@ from odmo_cli.checkpoint import load_model, load_odmo
 from odmo_cli.errors import UserError
 from odmo_cli.generation.generate import interpolate, parse_point, sample
 from odmo_cli.geometry.skeletons import get_skeleton
-from odmo_cli.latent import ActionModes, choose_k, discover_modes, knn_end_points, sample_codes
 
-# -- mode discovery --------------------------------------------------------------------------
-
-def blobs(k, per=40, seed=0):
-    """k tight blobs at the corners of a simplex (all centres 10 apart)."""
-    rng = np.random.default_rng(seed)
-    d = max(k, 4)
-    centres = np.eye(d)[:k] * 10 / np.sqrt(2)
-    return np.concatenate([c + rng.normal(0, 0.3, (per, d)) for c in centres]), np.repeat(np.arange(k), per)
-
-
-@pytest.mark.parametrize("k", [3, 5, 7])
-def test_silhouette_rule_finds_the_number_of_blobs(k):
-    codes, _ = blobs(k, seed=k)
-    modes = discover_modes(codes, seed=0)
-    assert len(modes.means) == k
-    assert sorted(modes.counts.tolist()) == [40] * k
-
-
-def test_choose_k_rule():
-    # S_3 > 0.95 S_4 holds first at 3
-    assert choose_k({3: 0.6, 4: 0.61, 5: 0.9}) == 3
-    # 3 -> 4 and 4 -> 5 improve by more than 5 %, 5 -> 6 does not
-    assert choose_k({3: 0.3, 4: 0.5, 5: 0.8, 6: 0.81}) == 5
-    assert choose_k({3: 0.1, 4: 0.2, 5: 0.3}) == 5
-
-
-def test_choose_k_release_rule():
-    # the release's rule goes on while S does not fall by more than 5 %: a flat curve is climbed
-    flat = {3: 0.20, 4: 0.20, 5: 0.19, 6: 0.10, 7: 0.30}
-    assert choose_k(flat, "paper") == 3  # S_3 > 0.95 S_4 already
-    assert choose_k(flat, "release") == 5  # S_6 < 0.95 S_5 stops it at 5, whatever comes after
-    assert choose_k({3: 0.3, 4: 0.5, 5: 0.8, 6: 0.81}, "release") == 6  # rising to the end: the largest k
-    assert choose_k({3: 0.5, 4: 0.1}, "release") == 3
-    with pytest.raises(ValueError, match="valid: paper, release"):
-        choose_k(flat, "elbow")
-
-
-def test_the_release_rule_climbs_only_to_nine_modes():
-    codes, _ = blobs(10, per=30, seed=10)
-    assert len(discover_modes(codes, seed=0).means) == 10  # the paper's k range reaches 11
-    release = discover_modes(codes, seed=0, rule="release")
-    assert len(release.means) == 9 and max(release.silhouettes) == 9  # k 3..9: two blobs share a mode
-    assert release.counts.sum() == 300
-    with pytest.raises(ValueError, match="valid: paper, release"):
-        discover_modes(codes, rule="elbow")
-
-
-def test_small_components_are_dropped_and_small_actions_fall_back():
-    codes, _ = blobs(3, per=40)
-    noise = np.random.default_rng(1).normal(30, 0.1, (4, 4))  # a far-away cluster of 4 codes
-    modes = discover_modes(np.concatenate([codes, noise]), seed=0)
-    assert all(c >= 10 for c in modes.counts) and modes.counts.sum() == 120
-    few = discover_modes(codes[:12], seed=0)
-    assert len(few.means) == 1 and "too few" in few.note
-
-
-def test_sampling_from_one_mode_stays_in_it():
-    codes, _ = blobs(3)
-    modes = discover_modes(codes, seed=0)
-    samples, ids = sample_codes(modes, 200, np.random.default_rng(0), mode=1)
-    assert (ids == 1).all()
-    nearest = np.linalg.norm(samples[:, None] - modes.means[None], axis=-1).argmin(1)
-    assert (nearest == 1).all()
-
-
-def test_mode_preserving_and_user_weights():
-    modes = ActionModes(np.eye(2) * 10, np.stack([np.eye(2)] * 2), np.array([30, 10]))
-    _, ids = sample_codes(modes, 4000, np.random.default_rng(0))
-    assert abs((ids == 0).mean() - 0.75) < 0.03
-    _, ids = sample_codes(modes, 4000, np.random.default_rng(0), weights=np.array([0.2, 0.8]))
-    assert abs((ids == 1).mean() - 0.8) < 0.03
-
-
-def test_knn_end_points():
-    bank = np.array([[0.0, 0.0], [10.0, 0.0]])
-    ends = np.array([[1.0, 0, 0], [2.0, 0, 0]])
-    assert knn_end_points(bank, ends, np.array([[9.0, 0.0], [1.0, 0.0]])).tolist() == [[2, 0, 0], [1, 0, 0]]
-    assert knn_end_points(bank, ends, np.array([[9.0, 0.0]]), k=2).tolist() == [[1.5, 0, 0]]
-
+# -- parsing ---------------------------------------------------------------------------------
 
 def test_parse_point():
     p, axes = parse_point("1,2", up_axis=1)
@@ -400,7 +322,7 @@ def test_crop_bank_draws_class_balanced_distinct_crops_and_encodes_them(make_hum
     from odmo_cli.data.dataset import crop_pad_shift
     from odmo_cli.data.locate import resolve
     from odmo_cli.data.readers import read_dataset
-    from odmo_cli.latent import crop_bank
+    from odmo_cli.generation.generate import crop_bank
     from odmo_cli.models.odmo import ODMO, ODMOConfig
 
     clips = read_dataset(*reversed(resolve(make_humanact12(tmp_path / "h", per_action=3, length=75))))
@@ -442,9 +364,9 @@ def test_modes_refit_switches_the_mixtures_data(lines_model, lines_folder, tmp_p
     import json
     import shutil
 
-    from odmo_cli import ship
+    from odmo_cli import checkpoint
     from odmo_cli.checkpoint import load_checkpoint
-    from odmo_cli.latent import fit_modes
+    from odmo_cli.models.latent import fit_modes
 
     path = tmp_path / "copy.pt"
     shutil.copy(lines_model, path)
@@ -461,7 +383,7 @@ def test_modes_refit_switches_the_mixtures_data(lines_model, lines_folder, tmp_p
     assert crops["passes"] == 5 and len(crops["codes"]) == len(ckpt["latent_bank"]["codes"])  # 12-frame clips: one crop each
     refit = fit_modes(crops, 2, seed=0)
     assert all(np.allclose(a["means"], b["means"]) for a, b in zip(refit["actions"], ckpt["modes"]["actions"]))
-    assert "crop_bank" in ship.compact(ckpt)  # a compact file keeps what its mixtures were fitted on
+    assert "crop_bank" in checkpoint.compact(ckpt)  # a compact file keeps what its mixtures were fitted on
     info = json.loads(CliRunner().invoke(app, ["info", "--model", str(path), "--json"]).stdout)
     assert "5 passes" in info["crop_bank"]
     res = CliRunner().invoke(app, ["modes", "--model", str(path), "--refit", "--mixture-data", "clips"])
@@ -474,7 +396,7 @@ def test_modes_refit_with_the_release_k_rule(lines_model, tmp_path):
     import shutil
 
     from odmo_cli.checkpoint import load_checkpoint
-    from odmo_cli.latent import fit_modes
+    from odmo_cli.models.latent import fit_modes
 
     path = tmp_path / "copy.pt"
     shutil.copy(lines_model, path)

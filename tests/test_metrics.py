@@ -1,4 +1,4 @@
-"""Metrics on hand-made inputs whose answers are known in closed form."""
+"""The papers' metrics (evaluation/metrics.py) on hand-made inputs whose answers are known in closed form."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ import pytest
 from scipy import linalg
 from scipy.stats import special_ortho_group
 
-from odmo_cli import metrics
+from odmo_cli.evaluation import metrics
+from odmo_cli.measures.diagnostics import BLOCK
 
 
 def _simplex(n_points: int, edge: float, dim: int | None = None, offset: float = 0.0) -> np.ndarray:
@@ -201,7 +202,7 @@ def test_multimodality_needs_an_action_with_two_samples():
 
 
 # ---------------------------------------------------------------------------------------------
-# APD, n-APD, mode homogeneity
+# n-APD
 
 
 def _points_as_motions(points: list[list[float]]) -> np.ndarray:
@@ -209,18 +210,6 @@ def _points_as_motions(points: list[list[float]]) -> np.ndarray:
     m = np.zeros((len(points), 1, 1, 3))
     m[:, 0, 0, 0] = [p[0] for p in points]
     return m
-
-
-def test_apd_uses_the_distance_between_whole_sequences():
-    # m1 differs from the zero motion by (3,0,0) at t=0 and (0,4,0) at t=1: distance
-    # sqrt(9 + 16) = 5 (per-frame mean would give 3.5, per-frame sum 7).
-    m = np.zeros((3, 2, 1, 3))
-    m[1, 0, 0] = [3.0, 0.0, 0.0]
-    m[1, 1, 0] = [0.0, 4.0, 0.0]
-    # Pairs (0,1)=5, (0,2)=0, (1,2)=5.
-    assert metrics.apd(m) == pytest.approx(10 / 3)
-    with pytest.raises(ValueError):
-        metrics.apd(m[:1])
 
 
 def test_n_apd_averages_per_category_ratios():
@@ -232,29 +221,6 @@ def test_n_apd_averages_per_category_ratios():
     assert metrics.n_apd(gen, gen_labels, real, real_labels) == pytest.approx(1.5)
     with pytest.raises(ValueError):
         metrics.n_apd(gen, np.array([0, 0, 0, 2, 2]), real, real_labels)
-
-
-def test_mode_apd_and_mode_homogeneity_known_values():
-    # Category 0: x = 0, 1, 10, 11. APD = (1+10+11+9+10+1)/6 = 7; modes {0,1}, {10,11}
-    # have APD 1 each, mode-APD = (2*1 + 2*1)/4 = 1; relative drop 6/7.
-    # Category 1: one mode, drop 0.
-    # Category 2: x = 0, 2, 4 with modes {0}, {2,4}: APD = 8/3, mode-APD = (0 + 2*2)/3,
-    # drop 1/2 (singleton mode counts as APD 0).
-    xs = [[0.0], [1.0], [10.0], [11.0], [0.0], [5.0], [0.0], [2.0], [4.0]]
-    labels = np.array([0, 0, 0, 0, 1, 1, 2, 2, 2])
-    modes = np.array([3, 3, 8, 8, 0, 0, 0, 1, 1])
-    m = _points_as_motions(xs)
-    assert metrics.mode_apd(m[:4], modes[:4]) == pytest.approx(1.0)
-    assert metrics.mode_apd(m[6:], modes[6:]) == pytest.approx(4 / 3)
-    expected = 100.0 * (6 / 7 + 0.0 + 1 / 2) / 3
-    assert metrics.mode_homogeneity(m, labels, modes) == pytest.approx(expected)
-
-
-def test_mode_homogeneity_zero_for_a_single_mode_and_rejects_tiny_categories():
-    m = _points_as_motions([[0.0], [1.0], [5.0]])
-    assert metrics.mode_homogeneity(m, np.zeros(3), np.zeros(3)) == 0.0
-    with pytest.raises(ValueError):
-        metrics.mode_homogeneity(m, np.array([0, 0, 1]), np.zeros(3))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -294,8 +260,18 @@ def test_bone_length_consistency_linear_stretch():
     assert metrics.bone_length_consistency(both, [-1, 0, 0]) == pytest.approx(expected / 2)
 
 
+def test_bone_length_consistency_does_not_depend_on_the_block_size():
+    """Block by block (diagnostics.BLOCK motions) in float64: exactly what the whole set at once in
+    float64, with numpy's own norm, gives."""
+    rng = np.random.default_rng(3)
+    m = rng.normal(size=(2 * BLOCK + 5, 12, 4, 3)).cumsum(1).astype(np.float32)  # spans 3 blocks
+    m64 = m.astype(np.float64)
+    lengths = np.linalg.norm(m64[:, :, 1:] - m64[:, :, [0, 1, 1]], axis=-1)  # (N, T, 3)
+    assert metrics.bone_length_consistency(m, [-1, 0, 1, 1]) == float(lengths.std(axis=1).mean())
+
+
 # ---------------------------------------------------------------------------------------------
-# inception score, ARI, confidence interval
+# inception score, confidence interval
 
 
 def test_inception_score_extremes_and_a_worked_example():
@@ -312,13 +288,6 @@ def test_inception_score_extremes_and_a_worked_example():
         metrics.inception_score(np.array([[2.0, -1.0]]))  # logits, not probabilities
 
 
-def test_adjusted_rand():
-    assert metrics.adjusted_rand([0, 0, 1, 1], [1, 1, 0, 0]) == pytest.approx(1.0)
-    # Pairs: 6 total, 2 together in truth, 1 together in prediction, 1 shared.
-    # ARI = (1 - 2*1/6) / ((2 + 1)/2 - 2*1/6) = 4/7.
-    assert metrics.adjusted_rand([0, 0, 1, 1], [0, 0, 1, 2]) == pytest.approx(4 / 7)
-
-
 def test_mean_ci95_known_values():
     mean, half = metrics.mean_ci95([1.0, 2.0, 3.0, 4.0])
     assert mean == pytest.approx(2.5)
@@ -328,132 +297,3 @@ def test_mean_ci95_known_values():
     assert metrics.mean_ci95([7.0]) == (7.0, 0.0)
     with pytest.raises(ValueError):
         metrics.mean_ci95([])
-
-
-# ---------------------------------------------------------------------------------------------
-# damping: body speed, amplitude, their ratios and the noise ceiling
-
-
-def _swing(n: int = 1, T: int = 60, period: float = 20.0, amp: float = 0.3, phase: float = 0.0,
-           stretch: float = 1.0) -> np.ndarray:
-    """(n, T, 3, 3): a root walking along z, a still joint above it and a joint swinging along x."""
-    t = np.arange(T) / stretch
-    m = np.zeros((n, T, 3, 3))
-    m[:, :, :, 2] += 0.05 * np.arange(T)[None, :, None]  # the root's trajectory carries every joint
-    m[:, :, 1, 1] += 0.5
-    m[:, :, 2, 0] += amp * np.sin(2 * np.pi * t / period + phase)
-    return m
-
-
-def test_body_speed_and_amplitude_known_values():
-    m = np.zeros((1, 11, 3, 3))
-    m[0, :, 1, 0] = 0.1 * np.arange(11)  # joint 1 moves 0.1 per frame about the root, joint 2 is still
-    m[0, :, :, 2] += 3.0 * np.arange(11)[:, None]  # the root's own motion does not count
-    assert metrics.body_speed(m, smooth=1)[0] == pytest.approx(0.05)
-    assert metrics.body_speed(m, smooth=3)[0] == pytest.approx(0.05)  # a moving average keeps a straight line
-    sq = np.zeros((1, 10, 2, 3))
-    sq[0, ::2, 1, 0] = 2.0  # x alternates 2, 0, 2, 0: mean 1, deviation 1 at every frame
-    assert metrics.body_amplitude(sq, smooth=1)[0] == pytest.approx(1.0)
-    assert metrics.body_speed(sq, smooth=1)[0] == pytest.approx(2.0)
-    assert metrics.body_speed(sq, smooth=2)[0] == pytest.approx(0.0)  # jitter averages away
-
-
-def test_per_motion_statistics_do_not_depend_on_the_block_size():
-    """The statistics run block by block (metrics.BLOCK motions) in float64: each motion's figure is
-    exactly what the whole set at once in float64, with numpy's own norm, gives."""
-    rng = np.random.default_rng(3)
-    m = rng.normal(size=(2 * metrics.BLOCK + 5, 12, 4, 3)).cumsum(1).astype(np.float32)  # spans 3 blocks
-    parents = [-1, 0, 1, 1]
-    body = m.astype(np.float64)[:, :, 1:] - m.astype(np.float64)[:, :, :1]
-    body = (body[:, :-2] + body[:, 1:-1] + body[:, 2:]) / 3  # the 3-frame moving average
-    speed = np.linalg.norm(np.diff(body, axis=1), axis=-1).mean(axis=(1, 2))
-    dev = body - body.mean(axis=1, keepdims=True)
-    amplitude = np.sqrt((dev ** 2).sum(-1).mean(axis=1)).mean(axis=1)
-    got_speed, got_amplitude = metrics.body_speed_and_amplitude(m)
-    assert got_speed.shape == (len(m),) and np.array_equal(got_speed, speed)
-    assert np.array_equal(got_amplitude, amplitude)
-    m64 = m.astype(np.float64)
-    lengths = np.linalg.norm(m64[:, :, 1:] - m64[:, :, [0, 1, 1]], axis=-1)  # (N, T, 3)
-    assert metrics.bone_length_consistency(m, parents) == float(lengths.std(axis=1).mean())
-    assert metrics.body_speed_and_amplitude(m[:0])[0].shape == (0,)
-
-
-def test_body_error_counts_the_pose_not_the_place():
-    rng = np.random.default_rng(0)
-    real = rng.normal(size=(3, 5, 4, 3))
-    moved = real + rng.normal(size=(3, 5, 1, 3))  # every frame's whole body shifted: the same poses
-    assert metrics.body_error(moved, real) == pytest.approx(0.0, abs=1e-12)
-    bent = real.copy()
-    bent[:, :, 1:] += np.array([0.0, 0.3, 0.4])  # every non-root joint 0.5 off, about the root
-    assert metrics.body_error(bent, real) == pytest.approx(0.5 * 3 / 4)
-    with pytest.raises(ValueError, match="differ in shape"):
-        metrics.body_error(real[:2], real)
-
-
-def test_retrieval_errors_take_the_nearest_code_and_the_best_clip_of_the_same_action():
-    def clip(x, root=0.0):  # (1, 2, 3): a root and one joint x to its side; body error |dx| / 2
-        return [[[root, 0.0, 0.0], [root + x, 0.0, 0.0]]]
-
-    bank = np.array([clip(0.0), clip(1.0), clip(3.0), clip(5.0)])
-    bank_labels, bank_codes = [0, 0, 0, 1], [[0.0], [10.0], [20.0], [0.0]]
-    # action 0: its nearest code is the x = 0 clip (error 1.25), its best clip x = 3 (0.25); action 1:
-    # one clip (0.5 both ways), the motion's place does not count; action 2: no bank clip, left out
-    motions = np.array([clip(2.5), clip(4.0, root=7.0), clip(9.0)])
-    got = metrics.retrieval_errors(motions, [0, 1, 2], [[0.1], [7.0], [0.0]], bank, bank_labels, bank_codes)
-    assert got["nearest_code"] == pytest.approx((1.25 + 0.5) / 2)
-    assert got["best_clip"] == pytest.approx((0.25 + 0.5) / 2)
-    none = metrics.retrieval_errors(motions[2:], [2], [[0.0]], bank, bank_labels, bank_codes)
-    assert np.isnan(none["nearest_code"]) and np.isnan(none["best_clip"])
-
-
-def test_mean_pose_error_is_the_spread_about_each_actions_mean_body():
-    m = np.zeros((3, 1, 2, 3))  # root at 0, one joint
-    m[0, 0, 1] = [1, 0, 0]
-    m[1, 0, 1] = [-1, 0, 0]  # action 0: mean body puts the joint at 0, 1 from each
-    m[2, 0, 1] = [0, 2, 0]  # action 1, alone: its own mean
-    m += np.array([5.0, 0, 0])  # where the motions are does not count
-    assert metrics.mean_pose_error(m, [0, 0, 1]) == pytest.approx((0.5 + 0.5 + 0.0) / 3)
-    assert metrics.mean_pose_error(m, [0, 1, 2]) == 0.0
-
-
-def test_damping_ratios_see_slowed_and_shrunk_motion():
-    real = _swing(2)
-    labels = np.array([0, 1])
-    same = metrics.damping_ratios(real, labels, real, labels)
-    assert same["speed"] == pytest.approx(1.0) and same["amplitude"] == pytest.approx(1.0)
-    shrunk = metrics.damping_ratios(_swing(2, amp=0.15), labels, real, labels)
-    assert shrunk["speed"] == pytest.approx(0.5, rel=1e-6) and shrunk["amplitude"] == pytest.approx(0.5, rel=1e-6)
-    # the same swing played at half speed over whole periods (a 3-frame average barely touches either)
-    slowed = metrics.damping_ratios(_swing(2, T=120, stretch=2.0), labels, _swing(2, T=120), labels)
-    assert slowed["speed"] == pytest.approx(0.5, abs=0.03)  # half the speed at the same swing
-    assert slowed["amplitude"] == pytest.approx(1.0, abs=0.03)
-    mixed = metrics.damping_ratios(np.concatenate([_swing(1), _swing(1, amp=0.15)]), labels, real, labels)
-    assert mixed["speed_by_class"] == pytest.approx({0: 1.0, 1: 0.5})
-    assert mixed["speed"] == pytest.approx(0.75)
-
-
-def test_class_ratios_nan_where_nothing_to_compare():
-    r = metrics.class_ratios([1.0, 2.0, 3.0], [0, 1, 2], [2.0, 0.0], [0, 1])
-    assert r[0] == pytest.approx(0.5)
-    assert np.isnan(r[1]) and np.isnan(r[2])  # real mean 0; no real motions at all
-    assert metrics.mean_finite(r.values()) == pytest.approx(0.5)
-    assert np.isnan(metrics.mean_finite([float("nan")]))
-
-
-def test_noise_ceiling_from_exact_codes_to_class_average():
-    # two clips of one class swinging in antiphase: their average does not move at all
-    m = np.concatenate([_swing(1), _swing(1, phase=np.pi)])
-    labels = np.array([0, 0])
-    codes = np.array([[0.0, 0.0], [1.0, 0.0]])
-    rng = np.random.default_rng(0)
-    sharp = metrics.noise_ceiling(codes, np.full((2, 2), 1e-3), m, labels, rng)
-    assert sharp["speed"] == pytest.approx(1.0, abs=1e-6)  # the code names its clip: nothing is averaged
-    assert sharp["body"] == pytest.approx(0.0, abs=1e-6)
-    blurred = metrics.noise_ceiling(codes, np.full((2, 2), 1e3), m, labels, rng)
-    assert blurred["speed"] < 0.01 and blurred["amplitude"] < 0.01
-    # every clip drawn as the class average: the body error of the action-mean body
-    assert blurred["body"] == pytest.approx(metrics.mean_pose_error(m, labels), rel=1e-3)
-    assert blurred["body"] > 0.05  # antiphase swings: their average stands still
-    # clips of other classes never mix in, however close their codes
-    other = metrics.noise_ceiling(codes, np.full((2, 2), 1e3), m, np.array([0, 1]), rng)
-    assert other["speed"] == pytest.approx(1.0, abs=1e-6)

@@ -19,6 +19,17 @@ def test_the_checkout_reads_data_manifests():
     assert available_manifests() == ("cmu_mocap", "humanact12", "uestc")
 
 
+def test_every_subpackage_is_listed_for_the_wheel():
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import tomli as tomllib
+
+    listed = set(tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = {".".join(p.parent.relative_to(REPO).parts) for p in (REPO / "odmo_cli").rglob("__init__.py")}
+    assert found <= listed, sorted(found - listed)
+
+
 def test_an_installed_wheel_finds_the_manifests(tmp_path):
     wheels = tmp_path / "wheels"
     build = subprocess.run([sys.executable, "-m", "pip", "wheel", str(REPO), "--no-deps", "--no-build-isolation",

@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from odmo_cli import metrics
-from odmo_cli import plausibility as P
+from odmo_cli.evaluation import metrics
+from odmo_cli.measures import plausibility as P
 from odmo_cli.geometry.skeletons import get_skeleton
 
 FPS = 20.0

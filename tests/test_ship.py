@@ -16,7 +16,7 @@ from odmo_cli.generation.generate import sample
 
 def test_compact_keeps_what_sampling_needs_in_half_the_space(lines_model, tmp_path):
     full = load_checkpoint(lines_model)
-    small = ship.compact(full)
+    small = checkpoint.compact(full)
     assert {"optimizer", "rng", "split"}.isdisjoint(small)
     assert {"config", "dataset", "latent_bank", "modes", "state_dict"} <= set(small)
     assert len(small["history"]) == 1 and small["weights_dtype"] == "float16"  # no matrix of 1M values
@@ -35,7 +35,7 @@ def test_compact_keeps_what_sampling_needs_in_half_the_space(lines_model, tmp_pa
 def test_compact_stores_large_matrices_as_int8_rows(lines_model, tmp_path):
     full = load_checkpoint(lines_model)
     biggest = max(v.numel() for v in full["state_dict"].values() if v.dim() == 2)
-    small = ship.compact(full, int8_min_values=biggest)
+    small = checkpoint.compact(full, int8_min_values=biggest)
     (name,) = small["int8_scales"]  # only the largest matrix is rounded to int8
     assert small["state_dict"][name].dtype == torch.int8 and name in small["weights_dtype"]
     assert small["int8_scales"][name].shape == (full["state_dict"][name].shape[0], 1)
@@ -54,7 +54,7 @@ def test_compact_stores_large_matrices_as_int8_rows(lines_model, tmp_path):
 
 def test_int8_rows_known_values():
     w = torch.tensor([[127.0, -63.5, 0.2], [0.0, 0.0, 0.0], [-2.54, 1.0, 0.0]])
-    q, scale = ship.int8_rows(w)
+    q, scale = checkpoint.int8_rows(w)
     assert q.dtype == torch.int8 and scale.dtype == torch.float32
     assert q[0].tolist() == [127, -64, 0] and scale[0, 0] == 1.0  # -63.5 rounds half to even
     assert q[1].tolist() == [0, 0, 0] and bool(scale[1, 0] > 0)  # an all-zero row: zeros, no 0/0
@@ -120,7 +120,7 @@ def test_build_continues_at_the_stage_it_stopped_in(lines_folder, lines_model, t
     monkeypatch.setitem(ship.RECIPES, str(lines_folder), tiny)
     monkeypatch.setitem(checkpoint.SHIPPED, str(lines_folder),
                         {"short": "lines", "odmo": "odmo_lines.pt", "classifier": "classifier_lines.pt"})
-    save_checkpoint(tmp_path / "odmo_lines.stage1.pt", ship.compact(load_checkpoint(lines_model)))
+    save_checkpoint(tmp_path / "odmo_lines.stage1.pt", checkpoint.compact(load_checkpoint(lines_model)))
     calls, train = [], ship.train_odmo
     monkeypatch.setattr(ship, "train_odmo", lambda *a, **kw: calls.append(a[1].epochs) or train(*a, **kw))
     epochs = []
@@ -142,7 +142,7 @@ def test_build_refuses_a_finished_stage_trained_otherwise(lines_folder, lines_mo
     monkeypatch.setitem(ship.RECIPES, str(lines_folder), tiny)
     monkeypatch.setitem(checkpoint.SHIPPED, str(lines_folder),
                         {"short": "lines", "odmo": "odmo_lines.pt", "classifier": "classifier_lines.pt"})
-    save_checkpoint(tmp_path / "odmo_lines.stage1.pt", ship.compact(load_checkpoint(lines_model)))
+    save_checkpoint(tmp_path / "odmo_lines.stage1.pt", checkpoint.compact(load_checkpoint(lines_model)))
     monkeypatch.setattr(ship, "train_odmo", lambda *a, **kw: pytest.fail("trained"))
     with pytest.raises(UserError, match=f"odmo_lines.stage1.pt was trained with other settings.*{named}"):
         ship.build(str(lines_folder), None, tmp_path, skip_classifier=True, say=lambda m: None)

@@ -39,8 +39,8 @@ def test_shipped_classifier_loads_safely_and_fits_its_dataset(name):
 @pytest.mark.parametrize("name", [
     "cmu_mocap",
     pytest.param("humanact12", marks=pytest.mark.xfail(strict=True, reason=(
-        "held-out accuracy is 86.1% (without speed augmentation; 90.3% with it): subject P12's slow "
-        "walks and runs are misread"))),
+        "held-out accuracy is 86.1%: subject P12's slow walks and runs are misread by a classifier that "
+        "sees speed (docs/evaluation.md)"))),
 ])
 def test_shipped_classifier_accuracy_on_held_out_real_clips(name, data_dir):
     path = shipped_classifier(name)
@@ -73,15 +73,14 @@ def _real_set(clips, manifest, seed: int, rate: float = 1.0, n: int = 100):
 @pytest.mark.parametrize("name", [
     "humanact12",
     pytest.param("cmu_mocap", marks=pytest.mark.xfail(strict=True, reason=(
-        "measured 2026-12-01: real Acc 95.4, FID 0.058; slowed 0.5 Acc 82.1, FID 0.442 (7.6x real) but "
-        "under the CMU FID bar 0.6: on FID alone this classifier would pass a half-speed model; the "
-        "speed-ratio bar (MOTION_BARS) is what catches it"))),
+        "a half-speed real set reads FID 0.442 (7.6x real), under the CMU FID bar 0.6: on FID alone this "
+        "classifier would pass a half-speed model; the speed-ratio bar (MOTION_BARS) is what catches it"))),
 ])
 def test_shipped_classifier_sees_damped_motion(name, data_dir):
     """Real motions played at half speed must not pass for real: clearly lower Acc, an FID over the
     model bar (QUALITY_BARS) and at least 4x that of another real set. A classifier trained to
     ignore playback speed (the earlier x[1/2, 2] augmentation) fails this."""
-    from odmo_cli import metrics
+    from odmo_cli.evaluation import metrics
 
     manifest, root = resolve(name, data_dir)
     clips = read_dataset(root, manifest)
@@ -144,7 +143,7 @@ def test_shipped_odmo_was_trained_by_its_recipe(short, dataset):
     seed = chain[-1]["train_config"]["seed"]
     for entry, stage in zip(reversed(chain), stages):
         # every setting of the stage, its seed the first stage's plus the stage's offset, and its model
-        # values where recorded (earlier stages' entries record them since 2026-12-06)
+        # values where recorded (older entries of the init chain lack them)
         assert stage_differences(entry["train_config"], entry.get("config"), recipe[stage], seed) == [], stage
     assert "config" in ckpt, "the shipped file's own model config"
 
@@ -221,11 +220,8 @@ def test_unmet_bars_names_each_miss():
 @pytest.mark.parametrize("short, dataset", [
     ("humanact12", "humanact12"),
     pytest.param("cmu", "cmu_mocap", marks=pytest.mark.xfail(strict=True, reason=(
-        "the new defaults (2026-12-02), a 40-epoch L_height stage and three 330-epoch pose-decoder stages "
-        "(2026-12-04), a 200-epoch pose-decoder stage on first crops with the pose loss about the root "
-        "(2026-12-06), the root on the trajectory: FID 0.514, speed 0.90, amplitude 0.89, Diversity, "
-        "Multimodality 2.35 (real 2.29), dist_e 0.070 and jump 81.1 meet their bars; Acc 85.25 and dance 44.2 "
-        "(>= 70) do not"))),
+        "Acc 85.25 (bar 88) and dance 44.2 (bar 70) miss their bars; FID 0.514, speed 0.90, amplitude 0.89, "
+        "Diversity, Multimodality 2.35 (real 2.29), dist_e 0.070 and jump 81.1 meet theirs (docs/results.md)"))),
 ])
 def test_shipped_odmo_meets_its_quality_bar(short, dataset, data_dir):
     """The default protocol (10 repeats, the paper's samples per action, the shipped classifier),
@@ -238,7 +234,7 @@ def test_shipped_odmo_meets_its_quality_bar(short, dataset, data_dir):
     assert not missed, "; ".join(missed)
 
 
-# What an animator sees (odmo_cli.plausibility), against the "Real motions" row as the floor, and the
+# What an animator sees (odmo_cli.measures.plausibility), against the "Real motions" row as the floor, and the
 # actions whose root must bounce as real motion's does.
 PLAUSIBLE_BARS = {"skate": 1.2, "contact": 0.10, "root_up": 0.8, "coverage": 0.85, "kinetic_fd": 3.0,
                   "bone_var": 0.01}
@@ -276,11 +272,11 @@ def test_unmet_plausibility_bars_names_each_miss():
 @pytest.mark.slow
 @pytest.mark.parametrize("short, dataset", [
     pytest.param("humanact12", "humanact12", marks=pytest.mark.xfail(strict=True, reason=(
-        "trained before these measures: feet skate (0.108 against 0.034), the root glides (run 0.18), "
-        "coverage 0.61, FD_k 32.6 against 1.7 (docs/results.md)"))),
+        "no term of its recipe asks for planted feet or a bouncing root: feet skate (0.108 against 0.034), "
+        "the root glides (run 0.18), coverage 0.61, FD_k 32.6 against 1.7 (docs/results.md)"))),
     pytest.param("cmu", "cmu_mocap", marks=pytest.mark.xfail(strict=True, reason=(
-        "trained before these measures, and its bones stretch (p95 0.35; made rigid, its speed falls under "
-        "its bar): docs/results.md"))),
+        "no term of its recipe asks for planted feet, and its bones stretch (p95 0.35; made rigid, its speed "
+        "falls under its bar): docs/results.md"))),
 ])
 def test_shipped_odmo_is_plausible(short, dataset, data_dir, tmp_path):
     """What an animator sees, by the default protocol, and a BVH export within 2 cm of the motions."""

@@ -22,7 +22,9 @@ from odmo_cli.errors import TrainingError, UserError
 from odmo_cli.training.a2m import A2MTrainConfig, A2MTrainer, train_a2m
 from odmo_cli.training.classifier import ClassifierTrainConfig, ClassifierTrainer, train_classifier
 from odmo_cli.training.dvgan import DVGANTrainConfig, DVGANTrainer, train_dvgan
+from odmo_cli.training.loop import TrainResult
 from odmo_cli.training.odmo import ODMOTrainer, TrainConfig, train_odmo
+from odmo_cli.training.recipe import train_recipe
 
 KINDS = ("odmo", "a2m", "dvgan", "classifier")
 TIMING = ("seconds", "clips_per_s")  # the only history entries that differ between runs
@@ -40,20 +42,37 @@ def train(kind: str, clips, out, epochs: int, resume=None, progress=None, model=
     if kind == "odmo":
         tc = TrainConfig(**{**dict(epochs=epochs, batch_size=16, val_every=0, checkpoint_every=0, val_fraction=0.0,
                                    seed=3, threads=1), **kw})
-        return train_odmo(clips, tc, out, {"motion_hidden": 16, "traj_hidden": 16, **(model or {})}, resume, progress)
+        return train_odmo(clips, tc, out, overrides={"motion_hidden": 16, "traj_hidden": 16, **(model or {})},
+                          resume=resume, progress=progress)
     if kind == "a2m":
         tc = A2MTrainConfig(**{**dict(epochs=epochs, batch_size=16, lr=1e-2, val_fraction=0.0, val_every=0,
                                       checkpoint_every=0, threads=1), **kw})
-        return train_a2m(clips, tc, out, None if resume else "lie", resume, progress,
-                         {"length": 10, "hidden": 32, "z_dim": 4, "bank_size": 4})
+        return train_a2m(clips, tc, out, representation=None if resume else "lie",
+                         overrides={"length": 10, "hidden": 32, "z_dim": 4, "bank_size": 4},
+                         resume=resume, progress=progress)
     if kind == "dvgan":
         tc = DVGANTrainConfig(**{**dict(epochs=epochs, batch_size=12, n_critic=2, checkpoint_every=0, seed=0,
                                         threads=1), **kw})
-        return train_dvgan(clips, tc, out, "cnn", {"hidden": 16, "lm_hidden": 8, "word_dim": 8, "rnn_latent": 8,
-                                                    "length": 16}, resume, progress)
+        return train_dvgan(clips, tc, out, generator="cnn", overrides={"hidden": 16, "lm_hidden": 8, "word_dim": 8,
+                                                                       "rnn_latent": 8, "length": 16},
+                           resume=resume, progress=progress)
     tc = ClassifierTrainConfig(**{**dict(epochs=epochs, batch_size=12, lr=3e-3, val_fraction=0.2, hidden=16,
                                          threads=1, seed=3, sampling="shuffle"), **kw})
-    return train_classifier(clips, tc, out, progress, resume)
+    return train_classifier(clips, tc, out, resume=resume, progress=progress)
+
+
+@pytest.mark.parametrize("entry", [train_odmo, train_a2m, train_dvgan, train_classifier, train_recipe])
+def test_every_entry_point_takes_one_order_and_returns_a_train_result(entry):
+    """(clips, a training config or recipe, out, *, the model's own options, resume, progress, device)
+    -> TrainResult: everything after `out` by name, the shared options last in one order."""
+    import inspect
+
+    sig = inspect.signature(entry)
+    names = list(sig.parameters)
+    assert names[0] == "clips" and names[2] == "out" and names[-3:] == ["resume", "progress", "device"]
+    assert all(p.kind is p.KEYWORD_ONLY for p in list(sig.parameters.values())[3:])
+    if entry is not train_recipe:
+        assert names[1] == "tc" and sig.return_annotation == "TrainResult"
 
 
 def without_timing(history: list[dict]) -> list[dict]:
@@ -92,6 +111,7 @@ def test_ctrl_c_mid_epoch_keeps_the_last_epoch_and_resume_is_exact(kind, clips, 
         weights_at[log["epoch"]] = load_checkpoint(full)["state_dict"]
 
     full_run = train(kind, clips, full, epochs, progress=record, checkpoint_every=1)
+    assert isinstance(full_run, TrainResult) and full_run.out == full and full_run.epochs == epochs
     assert steps_at[3] - steps_at[2] >= 2  # epoch 3 has a second step to stop at
     # the same run, Ctrl-C at the second optimizer step of epoch 3: in the middle of the epoch
     monkeypatch.undo()
@@ -164,7 +184,8 @@ def test_resume_refuses_another_kind_of_model(kind, clips, tmp_path):
 def test_a2m_resume_keeps_the_representation(clips, tmp_path):
     train("a2m", clips, tmp_path / "lie.pt", 1)
     with pytest.raises(UserError, match="a2m-lie model, not xyz"):
-        train_a2m(clips, A2MTrainConfig(epochs=2, threads=1), tmp_path / "x.pt", "xyz", resume=tmp_path / "lie.pt")
+        train_a2m(clips, A2MTrainConfig(epochs=2, threads=1), tmp_path / "x.pt", representation="xyz",
+                  resume=tmp_path / "lie.pt")
 
 
 def test_training_restores_the_thread_count(clips, tmp_path):

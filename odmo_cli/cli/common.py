@@ -125,8 +125,8 @@ RootOpt = Annotated[Optional[str], typer.Option(
                    "the default), decoder (the pose decoder's own root joint, as in the paper) or ground (the path on the "
                    "ground plane, the decoder's own height); docs/generation.md.")]
 EndOpt = Annotated[Optional[str], typer.Option("--end", help="End point: x,z (ground plane) or x,y,z.")]
-DeviceOpt = Annotated[str, typer.Option("--device", help="Where to compute: auto (the best present: CUDA, else MPS, "
-                                                         "else CPU), cpu (the default), cuda, cuda:N or mps.")]
+DeviceHelp = "Where to compute: auto (the best present: CUDA, else MPS, else CPU), cpu (the default), cuda, cuda:N or mps."
+DeviceOpt = Annotated[str, typer.Option("--device", help=DeviceHelp)]
 
 
 def device_for(spec: str):

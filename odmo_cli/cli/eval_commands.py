@@ -18,7 +18,7 @@ METRIC_HEADS = {"accuracy": "Acc ↑", "fid": "FID ↓", "diversity": "Div →",
                 "inception": "IS ↑", "n_apd": "n-APD", "bone_std": "bone std ↓", "speed": "speed →1",
                 "amplitude": "amplitude →1"}
 NARROW = ("accuracy", "fid", "diversity", "multimodality")  # the papers' four; --wide adds the rest
-# what an animator sees, with no trained network (odmo_cli.plausibility; docs/evaluation.md)
+# what an animator sees, with no trained network (odmo_cli.measures.plausibility; docs/evaluation.md)
 PLAUSIBLE_HEADS = {"foot_skate": "skate ↓", "foot_contact": "contact", "root_up": "root up",
                    "root_ground": "root gnd", "kinetic_fd": "FD_k ↓", "coverage": "cover ↑",
                    "density": "density", "bone_var": "bone p95"}
@@ -152,14 +152,14 @@ app.command("evaluate", cls=Command)(evaluate)
 app.command("eval", cls=Command, help="Alias of evaluate.")(evaluate)
 
 
-BENCH_PARTS = ("sampling", "end-to-end", "training", "evaluation")
+BENCH_PARTS = ("sampling", "composition", "end-to-end", "training", "evaluation")
 
 
 @app.command("bench", cls=Command)
 def bench(
     model: ModelOpt = None, data: DataOpt = None,
     runs: Annotated[int, typer.Option("--runs", help="Runs per figure (median reported).")] = 5,
-    only: Annotated[Optional[list[str]], typer.Option("--only", help="A part to run (repeatable): sampling, end-to-end, training, evaluation.")] = None,
+    only: Annotated[Optional[list[str]], typer.Option("--only", help="A part to run (repeatable): sampling, composition, end-to-end, training, evaluation.")] = None,
     peer: Annotated[Optional[Path], typer.Option("--peer", help="The authors' networks' timer, bench_peer.py (default: ../shared/peer/bench_peer.py when it exists); its figures join the table, measured in the same run.")] = None,
     out: Annotated[Optional[Path], typer.Option("--out", help="Also write the figures as JSON here.")] = None,
     device: DeviceOpt = "cpu", as_json: JsonOpt = False, wide: WideOpt = False,

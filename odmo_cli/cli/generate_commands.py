@@ -235,7 +235,7 @@ def modes_cmd(
     """Discovered modes per action: counts, silhouettes, agreement with ground-truth modes."""
     from odmo_cli.checkpoint import load_odmo
     from odmo_cli.generation.generate import mixture_data as crops_for, refit_modes
-    from odmo_cli.latent import mode_report
+    from odmo_cli.models.latent import mode_report
 
     if colour not in ("action", "mode"):
         raise UserError(f"unknown --colour {colour!r}; valid: action, mode")
@@ -272,7 +272,7 @@ def modes_cmd(
 def _plot_modes(loaded, plot: Path, projection: str, colour: str, action: Optional[str], seed: int) -> None:
     import numpy as np
 
-    from odmo_cli.latent import assign
+    from odmo_cli.models.latent import assign
     from odmo_cli.viz import latent_plot
 
     codes, labels = loaded.bank["codes"].numpy(), loaded.bank["labels"].numpy()

@@ -6,7 +6,6 @@ the parser with one line and exit 2, before any data is read.
 
 from __future__ import annotations
 
-import math
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -14,29 +13,31 @@ from typing import Annotated, Optional
 
 import typer
 
-from odmo_cli.cli.common import (Command, DataOpt, DeviceOpt, JsonOpt, SeedOpt, app, console, device_for, err_console,
-                                 RootOpt, print_json, resolve_spec, train_app)
+from odmo_cli.cli.common import (Command, DataOpt, DeviceHelp, DeviceOpt, JsonOpt, SeedOpt, app, console, device_for, err_console,
+                                 print_json, resolve_spec, train_app)
+from odmo_cli.cli.settings import ConfigOpt, flag, sources, with_settings
+from odmo_cli.config import ConfigError
 from odmo_cli.errors import UserError
+from odmo_cli.models.odmo_config import ODMOConfig
+from odmo_cli.training.configs import A2MTrainConfig, ClassifierTrainConfig, DVGANTrainConfig, TrainConfig
 
 ABLATIONS = ("es", "traj", "cons", "end-point")
 
 # The options every trainer shares (their defaults are each model's: None means "the model's own").
-DatasetOpt = Annotated[str, typer.Option("--dataset", help="Dataset name (see `odmo data list`) or a motion folder.")]
-LrFinalOpt = Annotated[Optional[float], typer.Option("--lr-final", help="Cosine decay of the rate to this value over the epochs (default: the model's; constant for odmo, a2m, dvgan).")]
-CheckpointOpt = Annotated[Optional[int], typer.Option("--checkpoint-every", help="Epochs between checkpoints (one is always written at the end; default 25).")]
-ValOpt = Annotated[Optional[int], typer.Option("--val-every", help="Epochs between validations on the held-out clips (0: never).")]
-ResumeOpt = Annotated[Optional[Path], typer.Option("--resume", help="Checkpoint to continue from, exactly (its model and schedule are kept; its own length unless --epochs extends it).")]
-ThreadsOpt = Annotated[int, typer.Option("--threads", help="CPU threads for torch (0: torch's default).")]
-NprocOpt = Annotated[int, typer.Option("--nproc", help="Processes training together on this machine (data-parallel, "
-                                                     "the same global batch; with --device cuda one GPU each). "
-                                                     "Several machines: torchrun, see docs/training.md.")]
+DatasetOpt = Annotated[str, typer.Option("--dataset", help="Dataset name (see `odmo data list`) or a motion folder.", rich_help_panel="Data")]
+ResumeHelp = "Checkpoint to continue from, exactly (its model and schedule are kept; its own length unless --epochs extends it)."
+ResumeOpt = Annotated[Optional[Path], typer.Option("--resume", help=ResumeHelp, rich_help_panel="Run")]
+ThreadsOpt = Annotated[int, typer.Option("--threads", help="CPU threads for torch (0: torch's default).", rich_help_panel="Run")]
+NprocHelp = ("Processes training together on this machine (data-parallel, the same global batch; with --device cuda "
+             "one GPU each). Several machines: torchrun, see docs/training.md.")
+NprocOpt = Annotated[int, typer.Option("--nproc", help=NprocHelp, rich_help_panel="Run")]
 
 
 def _out(out: Optional[Path], kind: str) -> Path:
     return out or Path(f"{kind}.pt")
 
 
-OutOpt = Annotated[Optional[Path], typer.Option("--out", help="Checkpoint to write (default: <model>.pt, e.g. odmo.pt).")]
+OutOpt = Annotated[Optional[Path], typer.Option("--out", help="Checkpoint to write (default: <model>.pt, e.g. odmo.pt).", rich_help_panel="Run")]
 
 
 def _start(device: str, nproc: int) -> bool:
@@ -68,9 +69,19 @@ def _without_nproc(argv: list[str]) -> list[str]:
     return out
 
 
-def _given(**values) -> dict:
-    """The options the user gave (None: not given, the config's default applies)."""
-    return {k: v for k, v in values.items() if v is not None}
+TrainConfigOpt = Annotated[Optional[Path], typer.Option(
+    "--config", help="TOML file with a \\[train] table setting any of the trainer's settings (options given here "
+                     "win; docs/training.md).", rich_help_panel="Run")]
+
+
+def _train_config(cls, settings: dict, config: Optional[Path], resume: Optional[Path], seed: int, threads: int):
+    """The trainer's config of a baseline or the classifier: its --config file's [train], then the options
+    given; resuming without --epochs, the checkpoint's own length."""
+    src = sources(settings, config, {"train": cls})
+    train = src.values("train", cls)
+    if "epochs" not in train and resume is not None:
+        train["epochs"] = _epochs(resume, None)
+    return src.build(cls, {**train, "seed": seed, "threads": threads})
 
 
 def _epochs(resume: Optional[Path], epochs: Optional[int]) -> Optional[int]:
@@ -87,126 +98,80 @@ def _clips(dataset: str, data: Optional[Path]):
     return read_dataset(root, manifest)
 
 
+RunPanel = "Run"
+
+
 @train_app.command("odmo", cls=Command)
+@with_settings(TrainConfig, ODMOConfig)
 def train_odmo_cmd(
-    dataset: Annotated[Optional[str], typer.Option("--dataset", help="Dataset name (see `odmo data list`) or a motion folder (default: the recipe's, else humanact12).")] = None,
-    data: DataOpt = None,
-    epochs: Annotated[Optional[int], typer.Option("--epochs", help="Epochs to train (default 300).")] = None,
-    batch_size: Annotated[Optional[int], typer.Option("--batch-size", help="Pairs per step (default 256; each step sees twice as many clips).")] = None,
-    lr: Annotated[Optional[float], typer.Option("--lr", help="Adam learning rate (default 1e-3, the paper's).")] = None,
-    lr_final: Annotated[Optional[float], typer.Option("--lr-final", help="Cosine decay of the rate to this value (default: constant).")] = None,
-    tf_epochs: Annotated[int, typer.Option("--tf-epochs", help="Teacher forcing decays from --tf-start to --tf-end (1 -> 0.3) over these epochs (0: all).")] = 0,
-    tf_start: Annotated[Optional[float], typer.Option("--tf-start", help="Teacher-forcing rate at the first epoch (default 1).")] = None,
-    tf_end: Annotated[Optional[float], typer.Option("--tf-end", help="Teacher-forcing rate once decayed (default 0.3, the release's).")] = None,
-    init: Annotated[Optional[Path], typer.Option("--init", help="Start from this finished ODMO checkpoint's weights and model config "
-                                                               "(a new stage: this run's schedule, a fresh optimizer; loss options override).")] = None,
-    tf_per: Annotated[Optional[str], typer.Option("--tf-per", help="Teacher-forcing coins: step (one per time step for the batch, the release) or clip.")] = None,
-    ablate: Annotated[Optional[list[str]], typer.Option("--ablate", help="Drop a part: es, traj, cons, end-point (repeatable).")] = None,
-    weight_decay: Annotated[Optional[float], typer.Option("--weight-decay", help="AdamW's decoupled weight decay (default 0: Adam, as in the paper and the release).")] = None,
-    decoder_dropout: Annotated[Optional[float], typer.Option("--decoder-dropout", help="Drop each of the pose decoder's hidden units with this probability in training, the same units at every step of a clip (default 0, as in the paper and the release).")] = None,
-    crops: Annotated[Optional[str], typer.Option("--crops", help="Which frames of each training clip a batch holds: random (a fresh crop each time, the default, as in the release) or first (the first T, the crops the latent bank and the mode mixtures encode).")] = None,
-    code_noise: Annotated[Optional[float], typer.Option("--code-noise", help="Scale of the posterior noise on the codes the decoders see in training (default 1, the VAE's, as in the paper and the release; 0: each crop's mean code, what sampling's mixtures are fitted on).")] = None,
-    mirror: Annotated[bool, typer.Option("--mirror", help="Mirror each training clip with probability 1/2 (left and right swapped; off by default, as in the paper and the release).", metavar="")] = False,
-    same_class: Annotated[Optional[float], typer.Option("--same-class-fraction", help="Share of same-action pairs (default 0.5, as the authors' release; -1: independent random pairs).")] = None,
-    preset: Annotated[str, typer.Option("--preset", help="Loss scales: odmo (default: the release's plus what measured better), release (the authors' code) or paper (its text); docs/training.md.")] = "odmo",
-    sigma2: Annotated[Optional[float], typer.Option("--sigma2", help="Prior variance of the code posterior (eq. 1; paper 0.05, release 0.0025).")] = None,
-    recon_weight: Annotated[Optional[float], typer.Option("--recon-weight", help="Weight of the reconstruction terms against L_es (paper 1: means over clips; release 2: summed over each pair).")] = None,
-    vel_weight: Annotated[Optional[float], typer.Option("--vel-weight", help="Weight of the joint-velocity error L_vel (0: off, as in the paper and the release).")] = None,
-    energy_weight: Annotated[Optional[float], typer.Option("--energy-weight", help="Weight of L_energy, each joint's speed and amplitude about the root against the clip's (preset odmo: 2; 0: off, as in the paper and the release).")] = None,
-    free_energy_weight: Annotated[Optional[float], typer.Option("--free-energy-weight", help="Weight of L_energy on a second, free-running decode of the same codes, as sampling runs it (preset odmo: 2; 0: off).")] = None,
-    height_weight: Annotated[Optional[float], typer.Option("--height-weight", help="Weight of L_height, the root height's speed and amplitude against the clip's, on the root that sampling draws (--root: the trajectory generator's, or the pose decoder's free-running decode; 0: off, the default, as in the paper and the release).")] = None,
-    mix_energy_weight: Annotated[Optional[float], typer.Option("--mix-energy-weight", help="Weight of L_energy on free-running decodes of codes mixed between two training clips of one action, asked to move as much as the same mixture of the two clips (0: off, the default; in neither the paper nor the release).")] = None,
-    free_from: Annotated[Optional[int], typer.Option("--free-from", help="First epoch (0-based) of the free-running L_energy (default: once teacher forcing has decayed; half the epochs when it decays over all).")] = None,
-    root: RootOpt = None,
-    train_parts: Annotated[Optional[str], typer.Option("--train-parts", help="Train only these networks, comma-separated: encoder, trajectory, motion (default: all); the others keep their weights, as from --init.")] = None,
-    pose_frame: Annotated[Optional[str], typer.Option("--pose-frame", help="What the pose decoder draws from: world (the dataset's frame, the paper's) or path (each frame's point of the generated trajectory).")] = None,
-    pose_loss: Annotated[Optional[str], typer.Option("--pose-loss", help="What the pose decoder's position error compares: world (every joint in the dataset's frame, the paper's) or body (every joint but the root about the root, the root's path once).")] = None,
-    motion_hidden: Annotated[Optional[int], typer.Option("--motion-hidden", help="Hidden units of the pose decoder (default 128, the paper's); with --init, more than the file's widens its decoder, drawing the same motions at first.")] = None,
-    checkpoint_every: CheckpointOpt = None, val_every: ValOpt = None,
-    recipe: Annotated[Optional[Path], typer.Option("--recipe", help="Train from scratch with the phases of this recipe file (TOML; docs/training.md): every model and training setting comes from it; with it give only --dataset/--data, --out, --resume, --threads, --device and --seed.")] = None,
-    out: OutOpt = None, resume: ResumeOpt = None, threads: ThreadsOpt = 0,
-    device: DeviceOpt = "cpu", nproc: NprocOpt = 1, seed: SeedOpt = 0, as_json: JsonOpt = False,
+    dataset: Annotated[Optional[str], typer.Option("--dataset", help="Dataset name (see `odmo data list`) or a motion folder (default: the recipe's, else humanact12).", rich_help_panel="Data")] = None,
+    data: Annotated[Optional[Path], typer.Option("--data", help="Data root (else $ODMO_DATA_DIR, else ~/.local/share/odmo).", rich_help_panel="Data")] = None,
+    preset: Annotated[str, typer.Option("--preset", help="Loss scales: odmo (default: the release's plus what measured better), release (the authors' code) or paper (its text); docs/training.md.", rich_help_panel="Losses")] = "odmo",
+    ablate: Annotated[Optional[list[str]], typer.Option("--ablate", help="Drop a part: es, traj, cons, end-point (repeatable; the paper's ablations).", rich_help_panel="Losses")] = None,
+    recipe: Annotated[Optional[Path], typer.Option("--recipe", help="Train from scratch with the phases of this recipe file (TOML; docs/training.md): every model and training setting comes from it; with it give only --dataset/--data, --out, --resume, --threads, --device and --seed.", rich_help_panel=RunPanel)] = None,
+    config: ConfigOpt = None,
+    init: Annotated[Optional[Path], typer.Option("--init", help="Start from this finished ODMO checkpoint's weights and model config (a new stage: this run's schedule, a fresh optimizer; loss options override).", rich_help_panel=RunPanel)] = None,
+    out: Annotated[Optional[Path], typer.Option("--out", help="Checkpoint to write (default odmo.pt).", rich_help_panel=RunPanel)] = None,
+    resume: Annotated[Optional[Path], typer.Option("--resume", help=ResumeHelp, rich_help_panel=RunPanel)] = None,
+    threads: Annotated[int, typer.Option("--threads", help="CPU threads for torch (0: torch's default).", rich_help_panel=RunPanel)] = 0,
+    device: Annotated[str, typer.Option("--device", help=DeviceHelp, rich_help_panel=RunPanel)] = "cpu",
+    nproc: Annotated[int, typer.Option("--nproc", help=NprocHelp, rich_help_panel=RunPanel)] = 1,
+    seed: Annotated[int, typer.Option("--seed", help="Seed for every random choice.", rich_help_panel=RunPanel)] = 0,
+    as_json: Annotated[bool, typer.Option("--json", help="Print machine-readable JSON on stdout instead of tables.", metavar="", rich_help_panel=RunPanel)] = False,
+    settings: dict | None = None,
 ):
-    """Train ODMO (the default of `odmo train`); at the end the checkpoint gets its latent bank and modes."""
-    from odmo_cli.models.odmo import POSE_FRAMES, POSE_LOSSES, PRESETS, ROOTS
-    from odmo_cli.training.odmo import TrainConfig, train_odmo
+    """Train ODMO (the default of `odmo train`); at the end the checkpoint gets its latent bank and modes.
+    Every setting of its two configs is an option below, or a key of a --config file."""
+    from odmo_cli.geometry.skeletons import SKELETONS
+    from odmo_cli.models.odmo import PRESETS
+    from odmo_cli.training.odmo import train_odmo
 
+    settings = settings or {}
     if recipe is not None:
-        settings = dict(epochs=epochs, batch_size=batch_size, lr=lr, lr_final=lr_final, tf_start=tf_start,
-                        tf_end=tf_end, init=init, tf_per=tf_per, weight_decay=weight_decay,
-                        decoder_dropout=decoder_dropout, crops=crops, code_noise=code_noise,
-                        same_class_fraction=same_class, sigma2=sigma2, recon_weight=recon_weight,
-                        vel_weight=vel_weight, energy_weight=energy_weight, free_energy_weight=free_energy_weight,
-                        height_weight=height_weight, mix_energy_weight=mix_energy_weight, free_from=free_from,
-                        root=root, train_parts=train_parts, pose_frame=pose_frame, pose_loss=pose_loss,
-                        motion_hidden=motion_hidden, checkpoint_every=checkpoint_every, val_every=val_every)
-        given = [k for k, v in settings.items() if v is not None]
-        given += ["ablate"] * bool(ablate) + ["tf_epochs"] * bool(tf_epochs) + ["mirror"] * mirror
-        given += ["preset"] * (preset != "odmo")
+        given = [flag(k) for k in settings] + ["--ablate"] * bool(ablate) + ["--config"] * (config is not None)
+        given += ["--preset"] * (preset != "odmo") + ["--init"] * (init is not None)
         if given:
-            raise UserError(f"--{given[0].replace('_', '-')} does not apply with --recipe: the recipe file sets "
-                            "every training setting (give only --dataset/--data, --out, --resume, --threads, "
-                            "--device, --seed)")
+            raise UserError(f"{given[0]} does not apply with --recipe: the recipe file sets every training setting "
+                            "(give only --dataset/--data, --out, --resume, --threads, --device, --seed)")
         return _train_recipe(recipe, dataset, data, _out(out, "odmo"), resume, threads, device, nproc, seed, as_json)
-    dataset = dataset or "humanact12"
-
-    out = _out(out, "odmo")
-    if same_class is not None and not (0 <= same_class <= 1 or same_class == -1):
-        raise UserError(f"--same-class-fraction must be in [0, 1] (or -1: independent pairs), got {same_class}")
     bad = [a for a in ablate or [] if a not in ABLATIONS]
     if bad:
         raise UserError(f"unknown ablation {bad[0]!r}; valid: {', '.join(ABLATIONS)}")
     if preset not in PRESETS:
         raise UserError(f"unknown preset {preset!r}; valid: {', '.join(PRESETS)}")
-    if tf_per is not None and tf_per not in ("step", "clip"):
-        raise UserError(f"--tf-per must be step or clip, got {tf_per!r}")
-    if pose_frame is not None and pose_frame not in POSE_FRAMES:
-        raise UserError(f"--pose-frame must be one of {', '.join(POSE_FRAMES)}, got {pose_frame!r}")
-    if pose_loss is not None and pose_loss not in POSE_LOSSES:
-        raise UserError(f"--pose-loss must be one of {', '.join(POSE_LOSSES)}, got {pose_loss!r}")
-    if root is not None and root not in ROOTS:
-        raise UserError(f"unknown --root {root!r}; valid: {', '.join(ROOTS)}")
-    if pose_frame is not None and init is not None:
+    if init is not None and resume is not None:
+        raise UserError("give either --init (start a new stage from a model's weights) or --resume, not both")
+    if init is not None and "pose_frame" in settings:
         raise UserError("--pose-frame changes what the weights mean; a stage from --init keeps its file's")
-    if motion_hidden is not None and motion_hidden < 1:
-        raise UserError(f"--motion-hidden must be a positive number of units, got {motion_hidden}")
-    scales = {"sigma2": sigma2, "recon_weight": recon_weight}  # ODMOConfig fields, given as --sigma2, --recon-weight
-    for key, value in scales.items():
-        if value is not None and not 0 < value < math.inf:  # nan fails every comparison
-            raise UserError(f"--{key.replace('_', '-')} must be a finite number > 0, got {value}")
-    for flag, value in (("--vel-weight", vel_weight), ("--energy-weight", energy_weight),
-                        ("--free-energy-weight", free_energy_weight), ("--height-weight", height_weight),
-                        ("--mix-energy-weight", mix_energy_weight)):
-        if value is not None and not 0 <= value < math.inf:
-            raise UserError(f"{flag} must be a finite number >= 0, got {value}")
-    scales.update(vel_weight=vel_weight, energy_weight=energy_weight, free_energy_weight=free_energy_weight,
-                  height_weight=height_weight, mix_energy_weight=mix_energy_weight)
-    overrides = {"use_es": "es" not in (ablate or []), "use_traj": "traj" not in (ablate or []),
-                 "use_cons": "cons" not in (ablate or []), "use_end_point": "end-point" not in (ablate or [])}
-    overrides.update(_given(**scales, pose_frame=pose_frame, pose_loss=pose_loss, root=root,
-                            motion_hidden=motion_hidden))
-    if init is not None:  # the file's config stands but for what was asked: loss weights, ablations
-        if resume is not None:
-            raise UserError("give either --init (start a new stage from a model's weights) or --resume, not both")
-        overrides = {k: v for k, v in overrides.items() if not k.startswith("use_") or not v}
-    lr = 1e-3 if lr is None else lr
-    tc = TrainConfig(**_given(epochs=_epochs(resume, epochs), batch_size=batch_size, checkpoint_every=checkpoint_every,
-                              val_every=val_every, same_class_fraction=same_class, tf_per=tf_per, mirror=mirror or None,
-                              weight_decay=weight_decay, decoder_dropout=decoder_dropout, crops=crops,
-                              code_noise=code_noise,
-                              free_from=free_from, tf_start=tf_start, tf_end=tf_end, train_parts=train_parts),
-                     lr=lr, lr_final=lr if lr_final is None else lr_final, tf_epochs=tf_epochs,
-                     seed=seed, threads=threads)
+    src = sources(settings, config, {"model": ODMOConfig, "train": TrainConfig})
+    overrides = {f"use_{a.replace('end-point', 'end_point')}": False for a in ablate or []}
+    overrides.update(src.values("model", ODMOConfig))
+    src.build(ODMOConfig, {"skeleton": next(iter(SKELETONS)), **overrides})  # the values alone; the data's shapes come later
+    train = src.values("train", TrainConfig)
+    if "epochs" not in train and resume is not None:
+        train["epochs"] = _epochs(resume, None)
+    tc = src.build(TrainConfig, {**train, "seed": seed, "threads": threads})
     prints = _start(device, nproc)  # after the options' own checks, before any data is read
-    clips = _clips(dataset, data)
-    with _epoch_bar(tc.epochs, as_json or not prints) as update, _interruptible(out, prints, odmo=True):
-        result = train_odmo(clips, tc, out, overrides, resume, _log_progress(update, tc.val_every), preset, device, init)
+    clips = _clips(dataset or "humanact12", data)
+    with (_epoch_bar(tc.epochs, as_json or not prints) as update, _interruptible(_out(out, "odmo"), prints, odmo=True),
+          _named(src)):
+        result = train_odmo(clips, tc, _out(out, "odmo"), preset=preset, init=init, overrides=overrides,
+                            resume=resume, progress=_log_progress(update, tc.val_every), device=device)
     if not prints:
         return
     if as_json:
         return _print_result(result)
     console.print(f"wrote {result.out} after {result.epochs} epochs")
     _print_odmo_report(result.report)
+
+
+@contextmanager
+def _named(src):
+    """A config's refusal of a value, raised inside training, named by where the value came from."""
+    try:
+        yield
+    except ConfigError as e:
+        raise src.error(e) from None
 
 
 def _print_odmo_report(r: dict) -> None:
@@ -234,22 +199,18 @@ def _print_odmo_report(r: dict) -> None:
 
 
 @train_app.command("classifier", cls=Command)
+@with_settings(ClassifierTrainConfig)
 def train_classifier_cmd(
     dataset: DatasetOpt = "humanact12", data: DataOpt = None,
-    epochs: Annotated[Optional[int], typer.Option("--epochs", help="Epochs to train (default 200: the shipped HumanAct12 classifier's recipe).")] = None,
-    batch_size: Annotated[Optional[int], typer.Option("--batch-size", help="Clips per step (default 64).")] = None,
-    lr: Annotated[Optional[float], typer.Option("--lr", help="Adam learning rate (default 1e-3).")] = None,
-    lr_final: Annotated[Optional[float], typer.Option("--lr-final", help="Cosine decay of the rate to this value (default 1e-5; 0: constant).")] = None,
-    checkpoint_every: CheckpointOpt = None,
-    out: OutOpt = None, resume: ResumeOpt = None, threads: ThreadsOpt = 0,
+    config: TrainConfigOpt = None, out: OutOpt = None, resume: ResumeOpt = None, threads: ThreadsOpt = 0,
     device: DeviceOpt = "cpu", nproc: NprocOpt = 1, seed: SeedOpt = 0, as_json: JsonOpt = False,
+    settings: dict | None = None,
 ):
     """Train the action classifier that evaluation reads motions with, on real clips with a held-out split."""
-    from odmo_cli.training.classifier import ClassifierTrainConfig, train_classifier
+    from odmo_cli.training.classifier import train_classifier
 
     out = _out(out, "classifier")
-    tc = ClassifierTrainConfig(**_given(epochs=_epochs(resume, epochs), batch_size=batch_size, lr=lr, lr_final=lr_final,
-                                        checkpoint_every=checkpoint_every), seed=seed, threads=threads)
+    tc = _train_config(ClassifierTrainConfig, settings, config, resume, seed, threads)
     prints = _start(device, nproc)  # after the options' own checks, before any data is read
     clips = _clips(dataset, data)
 
@@ -260,7 +221,8 @@ def train_classifier_cmd(
                               highlight=False)
 
     with _interruptible(out, prints):
-        report = train_classifier(clips, tc, out, None if as_json else show, resume, device)
+        report = train_classifier(clips, tc, out, resume=resume, progress=None if as_json else show,
+                                  device=device).report
     if not prints:
         return
     if as_json:
@@ -278,8 +240,8 @@ def _train_recipe(path: Path, dataset: str, data, out: Path, resume, threads: in
     prints = _start(device, nproc)
     clips = _clips(dataset or recipe.dataset or "humanact12", data)
     with _epoch_bar(recipe.epochs, as_json or not prints) as update, _interruptible(out, prints, odmo=True):
-        result = train_recipe(clips, recipe, out, seed, resume, _log_progress(update, recipe.train.get("val_every", 10)),
-                              device, threads)
+        result = train_recipe(clips, recipe, out, seed=seed, threads=threads, resume=resume,
+                              progress=_log_progress(update, recipe.train.get("val_every", 10)), device=device)
     if not prints:
         return
     if as_json:
@@ -291,29 +253,27 @@ def _train_recipe(path: Path, dataset: str, data, out: Path, resume, threads: in
 
 
 @train_app.command("a2m", cls=Command)
+@with_settings(A2MTrainConfig)
 def train_a2m_cmd(
     dataset: DatasetOpt = "humanact12", data: DataOpt = None,
-    representation: Annotated[Optional[str], typer.Option("--representation", help="Output: lie (the paper's model, default) or xyz (its 'w/o Lie' variant).")] = None,
-    epochs: Annotated[Optional[int], typer.Option("--epochs", help="Epochs to train (default 500; one epoch visits every training clip once).")] = None,
-    batch_size: Annotated[Optional[int], typer.Option("--batch-size", help="Clips per step (default 128, the paper's).")] = None,
-    lr: Annotated[Optional[float], typer.Option("--lr", help="Adam learning rate (default 2e-4, the paper's).")] = None,
-    lr_final: LrFinalOpt = None, checkpoint_every: CheckpointOpt = None, val_every: ValOpt = None,
-    out: OutOpt = None, resume: ResumeOpt = None, threads: ThreadsOpt = 0,
+    representation: Annotated[Optional[str], typer.Option("--representation", help="Output: lie (the paper's model, default) or xyz (its 'w/o Lie' variant).", rich_help_panel="Architecture")] = None,
+    config: TrainConfigOpt = None, out: OutOpt = None, resume: ResumeOpt = None, threads: ThreadsOpt = 0,
     device: DeviceOpt = "cpu", nproc: NprocOpt = 1, seed: SeedOpt = 0, as_json: JsonOpt = False,
+    settings: dict | None = None,
 ):
     """Train the Action2Motion baseline (conditional temporal VAE, xyz or Lie output)."""
     from odmo_cli.models.a2m import REPRESENTATIONS
-    from odmo_cli.training.a2m import A2MTrainConfig, train_a2m
+    from odmo_cli.training.a2m import train_a2m
 
     out = _out(out, "a2m")
     if representation is not None and representation not in REPRESENTATIONS:
         raise UserError(f"unknown representation {representation!r}; valid: {', '.join(REPRESENTATIONS)}")
-    tc = A2MTrainConfig(**_given(epochs=_epochs(resume, epochs), batch_size=batch_size, lr=lr, lr_final=lr_final,
-                                 checkpoint_every=checkpoint_every, val_every=val_every), seed=seed, threads=threads)
+    tc = _train_config(A2MTrainConfig, settings, config, resume, seed, threads)
     prints = _start(device, nproc)  # after the options' own checks, before any data is read
     clips = _clips(dataset, data)
     with _epoch_bar(tc.epochs, as_json or not prints) as update, _interruptible(out, prints):
-        result = train_a2m(clips, tc, out, representation, resume, _log_progress(update, tc.val_every), device=device)
+        result = train_a2m(clips, tc, out, representation=representation, resume=resume,
+                           progress=_log_progress(update, tc.val_every), device=device)
     if not prints:
         return
     if as_json:
@@ -325,27 +285,22 @@ def train_a2m_cmd(
 
 
 @train_app.command("dvgan", cls=Command)
+@with_settings(DVGANTrainConfig)
 def train_dvgan_cmd(
     dataset: DatasetOpt = "humanact12", data: DataOpt = None,
-    generator: Annotated[str, typer.Option("--generator", help="cnn (default) or rnn (rnn also completes motions: `odmo complete`).")] = "cnn",
-    epochs: Annotated[Optional[int], typer.Option("--epochs", help="Epochs to train, one discriminator pass over the clips each (default 10500: the paper's schedule).")] = None,
-    batch_size: Annotated[Optional[int], typer.Option("--batch-size", help="Clips per step (default 64).")] = None,
-    lr: Annotated[Optional[float], typer.Option("--lr", help="Adam learning rate of both networks (default 1e-4, the paper's).")] = None,
-    lr_final: LrFinalOpt = None,
-    n_critic: Annotated[Optional[int], typer.Option("--n-critic", help="Discriminator steps per generator step (default 10, the paper's).")] = None,
-    checkpoint_every: CheckpointOpt = None,
-    out: OutOpt = None, resume: ResumeOpt = None, threads: ThreadsOpt = 0,
+    generator: Annotated[str, typer.Option("--generator", help="cnn (default) or rnn (rnn also completes motions: `odmo complete`).", rich_help_panel="Architecture")] = "cnn",
+    config: TrainConfigOpt = None, out: OutOpt = None, resume: ResumeOpt = None, threads: ThreadsOpt = 0,
     device: DeviceOpt = "cpu", nproc: NprocOpt = 1, seed: SeedOpt = 0, as_json: JsonOpt = False,
+    settings: dict | None = None,
 ):
     """Train the DVGAN baseline (WGAN-GP conditioned on the action name, CNN or RNN generator)."""
     from odmo_cli.models.dvgan import GENERATORS
-    from odmo_cli.training.dvgan import DVGANTrainConfig, train_dvgan
+    from odmo_cli.training.dvgan import train_dvgan
 
     out = _out(out, "dvgan")
     if generator not in GENERATORS:
         raise UserError(f"unknown DVGAN generator {generator!r}; valid: {', '.join(GENERATORS)}")
-    tc = DVGANTrainConfig(**_given(epochs=_epochs(resume, epochs), batch_size=batch_size, lr=lr, lr_final=lr_final, n_critic=n_critic,
-                                   checkpoint_every=checkpoint_every), seed=seed, threads=threads)
+    tc = _train_config(DVGANTrainConfig, settings, config, resume, seed, threads)
     prints = _start(device, nproc)  # after the options' own checks, before any data is read
     clips = _clips(dataset, data)
 
@@ -356,7 +311,7 @@ def train_dvgan_cmd(
         return progress
 
     with _epoch_bar(tc.epochs, as_json or not prints) as update, _interruptible(out, prints):
-        result = train_dvgan(clips, tc, out, generator, resume=resume, progress=show(update), device=device)
+        result = train_dvgan(clips, tc, out, generator=generator, resume=resume, progress=show(update), device=device)
     if not prints:
         return
     if as_json:

@@ -2,7 +2,8 @@
 
 Figures: sampling throughput (motions/s for n = 1000 after load), what `odmo sample --action all`
 does after load beside the authors' bare networks making as many motions in the same run
-(../shared/peer/bench_peer.py, when present), model load time, end-to-end
+(../shared/peer/bench_peer.py, when present), `odmo compose` of 30-second motions in frames/s beside
+single-clip sampling making as many frames, model load time, end-to-end
 `odmo sample --n 20` wall time (a fresh process), peak RSS of `odmo sample --n 10000`, training
 s/epoch and clips/s on HumanAct12 and CMU MoCap with the arithmetic they imply (GFLOP per clip,
 GFLOP/s) beside this machine's float32 matrix-multiply rate, and the evaluation protocol's wall time.
@@ -72,7 +73,7 @@ def random_checkpoint(dataset: str, folder: Path) -> Path:
     """An untrained ODMO checkpoint with the dataset's shapes and a random latent bank."""
     from odmo_cli.data.manifest import load_manifest
     from odmo_cli.checkpoint import save_checkpoint
-    from odmo_cli.latent import fit_modes
+    from odmo_cli.models.latent import fit_modes
     from odmo_cli.models.odmo import ODMO, ODMOConfig
 
     m = load_manifest(dataset)
@@ -106,6 +107,48 @@ def bench_sampling(model_path: Path, runs: int, note: str, device: torch.device)
     return [Figure("model load", "s", loads, note),
             Figure(f"sampling throughput (n = {n}, T = {loaded.model.cfg.length})", "motions/s",
                    [n / t for t in times], note)]
+
+
+COMPOSE_SECONDS = 30  # the composition `bench_composition` times
+COMPOSE_SEQUENCES = 100  # side by side: composing is sequential in its windows, so its batch is the sequences
+
+
+def bench_composition(model_path: Path, runs: int, note: str, device: torch.device) -> list[Figure]:
+    """`odmo compose` after load: COMPOSE_SEQUENCES sequences of COMPOSE_SECONDS seconds, every action in
+    turn for one model length each (cut at the end), in frames a second; beside it single-clip sampling
+    making as many frames (`sample`, every action), and the ratio, run by run."""
+    from odmo_cli.checkpoint import load_odmo
+    from odmo_cli.generation.compose import compose
+    from odmo_cli.generation.generate import sample
+
+    loaded = load_odmo(model_path, device)
+    fps, T = float(loaded.dataset["fps"]), loaded.model.cfg.length
+    frames = int(round(COMPOSE_SECONDS * fps))
+    parts, left = [], frames
+    for i in range(-(-frames // T)):
+        parts.append(f"{loaded.actions[i % len(loaded.actions)]} {min(T, left)}f")
+        left -= T
+    spec = ", ".join(parts)
+    total = COMPOSE_SEQUENCES * frames
+    per = -(-total // (T * len(loaded.actions)))  # clips per action making at least as many frames
+    clips = per * len(loaded.actions) * T
+
+    def composing() -> None:
+        compose(loaded, spec, COMPOSE_SEQUENCES, seed=0)
+
+    def sampling() -> None:
+        sample(loaded, ["all"], per, seed=0)
+
+    composing(), sampling()
+    ours, single = [], []
+    for _ in range(runs):  # interleaved, so that both see the same machine
+        ours.append(total / _timed(composing, 1, warmup=0)[0])
+        single.append(clips / _timed(sampling, 1, warmup=0)[0])
+    name = f"{COMPOSE_SEQUENCES} compositions of {COMPOSE_SECONDS} s ({frames} frames, {len(parts)} segments)"
+    return [Figure(f"`odmo compose` after load: {name}", "frames/s", ours, note),
+            Figure(f"single-clip sampling, {clips} frames ({per} clips per action)", "frames/s", single, note),
+            Figure("composing over single-clip sampling, per frame", "x", [a / b for a, b in zip(ours, single)],
+                   "run by run; >= 1: composing is at least as fast per frame")]
 
 
 PEER_SHAPES = {"humanact12": "humanact12", "cmu_mocap": "cmu"}  # bench_peer.py --dataset, by our dataset
@@ -324,6 +367,9 @@ def run_bench(model: str | None = None, data=None, runs: int = 5, only: tuple[st
                 report.figures += bench_sample_command(path, runs, note, folder, peer, device)
             except UserError as exc:
                 report.skipped.append(f"the authors' networks: {exc}")
+        if want("composition"):
+            say("composition")
+            report.figures += bench_composition(path, runs, note, device)
         if want("end-to-end"):
             say("end to end")
             report.figures += bench_end_to_end(path, runs, note, folder, device)

@@ -99,7 +99,7 @@ def load_classifier(path: str | Path, expect_classes: int | None = None, expect_
             raise UserError(f"{path} is a {payload['kind']!r} checkpoint, not a classifier "
                             "(train one with `odmo train classifier` or use an Action2Motion classifier file)")
         try:
-            cfg = ClassifierConfig.from_dict(payload["config"])
+            cfg = ClassifierConfig.from_saved(payload["config"])
             state = payload["state_dict"]
         except (KeyError, TypeError):
             raise UserError(f"{path}: classifier checkpoint without config or state_dict") from None

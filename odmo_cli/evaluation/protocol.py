@@ -22,19 +22,20 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from odmo_cli import metrics, plausibility
 from odmo_cli.checkpoint import SAMPLING, LoadedODMO, load_model, shipped_file
 from odmo_cli.data.dataset import crop_pad_shift, random_start
 from odmo_cli.data.locate import resolve
 from odmo_cli.data.manifest import available_manifests, load_manifest
 from odmo_cli.data.readers import ClipSet, read_dataset
 from odmo_cli.errors import UserError
+from odmo_cli.evaluation import metrics
 from odmo_cli.evaluation.classifier import check_matches, load_classifier
 from odmo_cli.formats.samples import read_samples
 from odmo_cli.generation.batch import decode
 from odmo_cli.generation.generate import sample
 from odmo_cli.geometry.skeletons import get_skeleton
-from odmo_cli.latent import sample_codes
+from odmo_cli.measures import diagnostics, plausibility
+from odmo_cli.models.latent import sample_codes
 from odmo_cli.parallel import default_workers, parallel_map
 
 DEFAULT_PER_ACTION = {"cmu_mocap": 400, "humanact12": 250, "uestc": 200}
@@ -71,8 +72,8 @@ class RealSets:
     logits: list[np.ndarray]
     apd: dict  # {action: APD} of the first real set (metrics.class_apd)
     bone_std: list[float]
-    speed: list[np.ndarray]  # repeats + 1 sets of (C*N,) body speeds (metrics.body_speed)
-    amplitude: list[np.ndarray]  # the same for metrics.body_amplitude
+    speed: list[np.ndarray]  # repeats + 1 sets of (C*N,) body speeds (diagnostics.body_speed)
+    amplitude: list[np.ndarray]  # the same for diagnostics.body_amplitude
     plausible: list[dict] = field(default_factory=list)  # repeats + 1 sets of plausibility.measure
     frame: plausibility.Frame | None = None  # up axis, feet, fps and leg length (measured on the first set)
     scale: tuple | None = None  # the z-scoring of the kinetic features (plausibility.standardizer of the first set)
@@ -133,7 +134,7 @@ def set_stats(motions: np.ndarray, labels: np.ndarray, classifier, parents, fram
               with_apd: bool = True) -> SetStats:
     """The statistics in float64 (metrics converts block by block); n-APD only `with_apd`."""
     logits, feats = classifier.predict(motions)
-    speed, amplitude = metrics.body_speed_and_amplitude(motions)
+    speed, amplitude = diagnostics.body_speed_and_amplitude(motions)
     return SetStats(logits, feats, labels, metrics.bone_length_consistency(motions, parents), speed, amplitude,
                     metrics.class_apd(motions, labels, cap=APD_CAP) if with_apd else {},
                     plausibility.measure(motions, frame, parents))
@@ -159,7 +160,7 @@ def damping_metrics(speed: np.ndarray, amplitude: np.ndarray, labels: np.ndarray
     about the root has no ratio (the key is absent), and with none left neither has the overall one."""
     out = {}
     for key, values, ref in (("speed", speed, real.speed[0]), ("amplitude", amplitude, real.amplitude[0])):
-        ratios = {c: v for c, v in metrics.class_ratios(values, labels, ref, real.labels).items() if np.isfinite(v)}
+        ratios = {c: v for c, v in diagnostics.class_ratios(values, labels, ref, real.labels).items() if np.isfinite(v)}
         if ratios:
             out[key] = float(np.mean(list(ratios.values())))
         out.update({f"{key}/{c}": v for c, v in ratios.items()})

@@ -22,7 +22,7 @@ from odmo_cli.device import generator, model_device
 from odmo_cli.errors import UserError
 from odmo_cli.generation.batch import MotionBatch, decode
 from odmo_cli.geometry.skeletons import get_skeleton
-from odmo_cli.latent import CROP_PASSES, DEFAULT_CROP_PASSES, K_RULES, crop_bank, fit_modes, knn_end_points, sample_codes
+from odmo_cli.models.latent import K_RULES, codes_and_ends, fit_modes, knn_end_points, sample_codes
 
 
 def parse_point(text: str, up_axis: int, name: str = "--end") -> tuple[np.ndarray, tuple[int, ...]]:
@@ -184,8 +184,8 @@ def interpolate(loaded: LoadedODMO, action: str, steps: int = 8, from_mode: int 
 def refit_modes(loaded: LoadedODMO, seed: int = 0, crops: dict | None | bool = False, rule: str | None = None) -> None:
     """Refit the mode mixtures and save them into the checkpoint (atomically). `crops`: False keeps
     the file's mixture data (its crop bank, else its latent bank); None drops the crop bank and fits
-    on one code per clip; a dict (latent.crop_bank) becomes the file's crop bank. `rule`: how k is
-    chosen (latent.K_RULES); None keeps the file's."""
+    on one code per clip; a dict (crop_bank) becomes the file's crop bank. `rule`: how k is
+    chosen (models.latent.K_RULES); None keeps the file's."""
     rule = rule or loaded.k_rule
     if rule not in K_RULES:
         raise UserError(f"unknown --k-rule {rule!r}; valid: {', '.join(K_RULES)}")
@@ -204,6 +204,44 @@ def refit_modes(loaded: LoadedODMO, seed: int = 0, crops: dict | None | bool = F
 
 
 MIXTURE_DATA = ("crops", "clips")  # `odmo modes --mixture-data`
+
+# The authors' release fits each action's mode mixture, and finds the KNN end points, on the encoder
+# means of random crops of the training clips: `num_itr` passes of its training loader, 2048 clips a
+# pass drawn class-balanced (create_GMM in ensemble.py; num_itr in inference_odmo.py). The paper does
+# not say which crops; one code per clip (the latent bank) sees only each clip's first T frames.
+CROP_PASSES = {"humanact12": 15, "cmu_mocap": 5, "uestc": 8}  # the release's num_itr
+DEFAULT_CROP_PASSES = 5
+CROPS_PER_PASS = 2048
+
+
+def crop_bank(model, clips, idx: np.ndarray, passes: int, rng: np.random.Generator,
+              per_pass: int = CROPS_PER_PASS, batch: int = 512) -> dict:
+    """Codes of `passes` x `per_pass` random crops of clips[idx] (a ClipSet), drawn class-balanced (every
+    action equally often, clips uniformly within it) as the release's loader draws them; a crop drawn
+    twice (same clip, same start) is kept once. Keys: codes, labels, end_points as the latent bank's; clip
+    (the crop's position in idx, which is the latent bank's order when idx is its), start, passes."""
+    from odmo_cli.data.dataset import crop_pad_shift, random_start
+
+    if passes < 1:
+        raise ValueError(f"passes must be at least 1, got {passes}")
+    labels = clips.labels[idx]
+    actions = np.unique(labels)
+    T = model.cfg.length
+    per_action = max(1, passes * per_pass // len(actions))
+    pairs = set()  # (position in idx, start)
+    for a in actions:
+        for p in rng.choice(np.flatnonzero(labels == a), per_action):
+            pairs.add((int(p), random_start(len(clips.motions[idx[p]]), T, rng)))
+    pairs = sorted(pairs)
+    codes, ends = codes_and_ends(model, (
+        torch.stack([torch.from_numpy(crop_pad_shift(clips.motions[idx[p]], T, s)) for p, s in pairs[b:b + batch]])
+        for b in range(0, len(pairs), batch)))
+    return {"codes": codes,  # (M, D)
+            "labels": torch.from_numpy(labels[[p for p, _ in pairs]].copy()),  # (M,)
+            "end_points": ends,  # (M, 3)
+            "clip": torch.tensor([p for p, _ in pairs], dtype=torch.int32),  # (M,)
+            "start": torch.tensor([s for _, s in pairs], dtype=torch.int32),  # (M,)
+            "passes": passes}
 
 
 def mixture_data(loaded: LoadedODMO, kind: str, data: str | Path | None = None, seed: int = 0) -> dict | None:

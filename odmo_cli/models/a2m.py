@@ -24,7 +24,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from odmo_cli.config import Config
+from odmo_cli.config import Config, ConfigError
 from odmo_cli.errors import UserError
 from odmo_cli.geometry.lie import (bone_lengths_from_pose, forward_kinematics, inverse_kinematics, rest_directions,
                           so3_exp, so3_log)
@@ -52,7 +52,7 @@ class A2MConfig(Config):
 
     def __post_init__(self):
         if self.representation not in REPRESENTATIONS:
-            raise UserError(f"unknown representation {self.representation!r}; valid: {', '.join(REPRESENTATIONS)}")
+            raise ConfigError("representation", f"must be one of {', '.join(REPRESENTATIONS)}, got {self.representation!r}")
         if min(self.n_joints, self.n_classes, self.length, self.hidden, self.z_dim, self.gen_layers,
                self.bank_size) <= 0:
             raise UserError("A2M config sizes must be positive")
@@ -228,6 +228,6 @@ def model_from_checkpoint(ckpt: dict) -> A2M:
     """The generator interface of `odmo_cli.generate` (BASELINES)."""
     if ckpt.get("kind") != "a2m":
         raise UserError(f"not an Action2Motion checkpoint (kind {ckpt.get('kind')!r})")
-    model = A2M(A2MConfig.from_dict(ckpt["config"]))
+    model = A2M(A2MConfig.from_saved(ckpt["config"]))
     model.load_state_dict(ckpt["state_dict"])
     return model

@@ -18,7 +18,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from odmo_cli.config import Config
+from odmo_cli.config import Config, ConfigError
 from odmo_cli.errors import UserError
 
 GENERATORS = ("cnn", "rnn")
@@ -49,7 +49,7 @@ class DVGANConfig(Config):
     def __post_init__(self):
         self.actions, self.vocab = tuple(self.actions), tuple(self.vocab)
         if self.generator not in GENERATORS:
-            raise UserError(f"unknown DVGAN generator {self.generator!r}; valid: {', '.join(GENERATORS)}")
+            raise ConfigError("generator", f"must be one of {', '.join(GENERATORS)}, got {self.generator!r}")
         if not self.vocab:
             self.vocab = tuple(sorted({w for a in self.actions for w in action_words(a)}))
         if self.length < 2 or self.n_joints < 1:
@@ -312,6 +312,6 @@ class DVGAN(nn.Module):
 
 def model_from_checkpoint(ckpt: dict) -> DVGAN:
     """The generator interface of odmo_cli.generate: a DVGAN with the checkpoint's weights."""
-    model = DVGAN(DVGANConfig.from_dict(ckpt["config"]))
+    model = DVGAN(DVGANConfig.from_saved(ckpt["config"]))
     model.load_state_dict(ckpt["state_dict"])
     return model

@@ -15,8 +15,8 @@ import torch.nn.functional as F
 
 from odmo_cli.geometry.kinematics import bone_lengths, root_velocities
 from odmo_cli.geometry.skeletons import SKELETONS
+from odmo_cli.measures.plausibility import CONTACT_HEIGHT  # the evaluation's contact, so the loss and the measure agree
 from odmo_cli.models.odmo import read_out
-from odmo_cli.plausibility import CONTACT_HEIGHT  # the evaluation's contact, so the loss and the measure agree
 
 
 def contrastive(mu1: torch.Tensor, mu2: torch.Tensor, same: torch.Tensor, alpha: float,
@@ -65,7 +65,7 @@ def about_root(motion: torch.Tensor) -> torch.Tensor:
 def body_motion_stats(motion: torch.Tensor, smooth: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
     """Per clip and joint: speed (mean norm of the frame-to-frame change) and amplitude (RMS distance
     from the mean position) of the joints about the root, after a `smooth`-frame moving average:
-    (B, T, J, 3) -> (B, J-1), (B, J-1). The differentiable twin of metrics.body_speed/body_amplitude."""
+    (B, T, J, 3) -> (B, J-1), (B, J-1). The differentiable twin of diagnostics.body_speed/body_amplitude."""
     body = motion[:, :, 1:] - motion[:, :, :1]  # (B, T, J-1, 3)
     if smooth > 1:
         body = body.unfold(1, smooth, 1).mean(-1)  # (B, T - smooth + 1, J-1, 3)
@@ -104,7 +104,8 @@ def root_height_stats(motion: torch.Tensor, up_axis: int, smooth: int = 3) -> tu
     """Per clip: speed (mean absolute frame-to-frame change) and amplitude (standard deviation about
     its least-squares line over time) of the root's height, after a `smooth`-frame moving average:
     (B, T, J, 3) -> (B,), (B,). A steady climb or sink is no amplitude: a decoder could otherwise
-    match a jump's spread by drifting (measured: it did). The twin of metrics.root_height_speed_and_amplitude."""
+    match a jump's spread by drifting (measured: it did). The twin of
+    diagnostics.root_height_speed_and_amplitude."""
     h = motion[:, :, 0, up_axis]  # (B, T)
     if smooth > 1:
         h = h.unfold(1, smooth, 1).mean(-1)  # (B, T - smooth + 1)

@@ -6,7 +6,7 @@ for the whole batch and computes its share (training/distributed.py).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -19,32 +19,13 @@ from odmo_cli.errors import UserError
 from odmo_cli.geometry.lie import bone_lengths_from_pose
 from odmo_cli.models.a2m import A2M, A2MConfig, a2m_terms, paper_lambda_kl
 from odmo_cli.parallel import thread_count
+from odmo_cli.training.configs import A2MTrainConfig
 from odmo_cli.training.distributed import training_group
-from odmo_cli.training.loop import LoopConfig, Progress, Trainer, TrainResult, dataset_shapes
-
-
-@dataclass
-class A2MTrainConfig(LoopConfig):
-    epochs: int = 500  # the paper gives iterations, not epochs; ~9 steps per HumanAct12 epoch
-    batch_size: int = 128  # A.2
-    lr: float = 2e-4  # A.2, Adam with betas (0.9, 0.999); constant (lr_final 0)
-    weight_decay: float = 1e-5  # A.2
-    teacher_rate: float = 0.6  # p_tf (§3.2.3, A.2)
-    lambda_kl: float = -1.0  # < 0: the paper's value for the dataset (0.01 HumanAct12, else 0.1)
-    grad_clip: float = 0.0  # 0: no clipping (the paper does not clip)
-
-    def __post_init__(self):
-        if self.epochs <= 0 or self.batch_size <= 0:
-            raise UserError(f"epochs and batch size must be positive, got {self.epochs} and {self.batch_size}")
-        if self.lr <= 0 or self.weight_decay < 0:
-            raise UserError(f"learning rate must be positive and weight decay >= 0, got {self.lr}, {self.weight_decay}")
-        if not 0 <= self.teacher_rate <= 1:
-            raise UserError(f"teacher-forcing rate must be in [0, 1], got {self.teacher_rate}")
-        super().__post_init__()
+from odmo_cli.training.loop import Progress, Trainer, TrainResult, dataset_shapes
 
 
 def a2m_config_for(clips: ClipSet, representation: str = "lie", overrides: dict | None = None) -> A2MConfig:
-    return A2MConfig.from_dict({**dataset_shapes(clips), "representation": representation, **(overrides or {})})
+    return A2MConfig.from_dict({**A2MConfig.pick(dataset_shapes(clips)), "representation": representation, **(overrides or {})})
 
 
 def bone_bank(clips: ClipSet, idx: np.ndarray, k: int, seed: int) -> torch.Tensor:
@@ -123,9 +104,9 @@ class A2MTrainer(Trainer):
         return {k: v / len(idx) for k, v in sums.items()}
 
 
-def train_a2m(clips: ClipSet, tc: A2MTrainConfig, out: Path, representation: str | None = None,
-              resume: Path | None = None, progress: Progress | None = None,
-              overrides: dict | None = None, device: str = "cpu") -> TrainResult:
+def train_a2m(clips: ClipSet, tc: A2MTrainConfig, out: str | Path, *, representation: str | None = None,
+              overrides: dict | None = None, resume: Path | None = None, progress: Progress | None = None,
+              device: str = "cpu") -> TrainResult:
     """Train Action2Motion on clips (or resume a checkpoint); the final checkpoint holds a report.
 
     representation: "xyz" or "lie" (None: "lie", or the resumed checkpoint's). `device`: as train_odmo's.

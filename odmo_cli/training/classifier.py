@@ -6,21 +6,10 @@ playback speed, optionally rotation and noise), Adam and cross-entropy. Validati
 frames of every held-out clip (the canonical crop), every epoch; the report adds one fixed seeded
 random crop of each. The final weights are kept (no selection on the validation set).
 
-Training notes (threads=1, seed 0, 20% per-class held-out split, accuracy on the first T frames
-of held-out clips, one run each, so +-1-2 points is noise): plain shuffling of one random crop per
-clip reached 85-87% on HumanAct12 and 89% on CMU MoCap-7; mirroring, random playback speed and
-length-proportional sampling lifted that to 90.3% (HumanAct12, 200 epochs, speed 2.0) and 90.8%
-(CMU-7, 100 epochs, speed 1.3). Dropout, weight decay, input noise, rotation about the up axis and
-larger batches or learning rates did not help, nor did label smoothing 0.1 (89.9%) or an
-exponential moving average of the weights (decay 0.999 per step: 91.2%, two more clips right).
-Most HumanAct12 errors come from subject P12 (about 56% held-out accuracy against 86-100% for
-the others; its walks and runs are markedly slower per frame: P12's runs move the body 15 mm and
-the root 20 mm per frame, other subjects' runs 23-35 and 18-37 mm, their walks 19-28 and 15-33 mm,
-so P12's runs look like everyone else's walks).
-Hand-made features with an RBF SVM reach about 91% on the same split.
-Random playback speed is off by default since 2026-12-01: it taught the classifier that a slowed-down
-motion is still the same action, so damped generated motion passed (docs/evaluation.md). Without it
-the shipped recipes reach 86.1% (HumanAct12) and 90.3% (CMU-7).
+The defaults are the shipped recipe: mirroring and length-proportional sampling, and no playback-speed
+change, because a classifier taught that a slowed-down motion is still the same action lets damped
+generated motion pass (docs/evaluation.md, "Classifiers that see damped motion"). What else was tried,
+with its held-out accuracies: docs/lab/classifier.md.
 
 On several processes every rank prepares the epoch's augmented crops (one numpy stream) and
 computes its share of each batch (training/distributed.py).
@@ -29,7 +18,6 @@ computes its share of each batch (training/distributed.py).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -41,60 +29,9 @@ from odmo_cli.data.readers import ClipSet
 from odmo_cli.errors import UserError
 from odmo_cli.models.classifier import ClassifierConfig, MotionClassifier, config_for
 from odmo_cli.parallel import thread_count
+from odmo_cli.training.configs import ClassifierTrainConfig
 from odmo_cli.training.distributed import training_group
-from odmo_cli.training.loop import LoopConfig, Progress, Trainer
-
-SAMPLINGS = ("shuffle", "balanced", "length")
-
-
-@dataclass
-class ClassifierTrainConfig(LoopConfig):
-    # Defaults: the settings of the measured HumanAct12 run (see the module's training notes).
-    epochs: int = 200
-    batch_size: int = 64
-    lr: float = 1e-3
-    lr_final: float = 1e-5  # cosine decay from lr to lr_final over the epochs; 0 keeps lr constant
-    weight_decay: float = 0.0
-    dropout: float = 0.0  # between GRU layers, training only
-    rotate: float = 0.0  # augmentation: random rotation about the up axis, up to this many degrees
-    mirror: bool = True  # augmentation: half the crops mirrored (left/right joints swapped)
-    # augmentation: playback speed drawn log-uniformly in [1/speed, speed]; 1: off. Off by default:
-    # a classifier that has learnt a slowed-down punch is still a punch cannot see damped motion.
-    speed: float = 1.0
-    noise: float = 0.0  # augmentation: std of Gaussian noise added to every coordinate (dataset units)
-    val_fraction: float = 0.2
-    val_every: int = 1  # held-out accuracy after every epoch
-    # "shuffle": every training clip once per epoch; "length": every clip ceil(frames / T) times
-    # (long clips give more crops); "balanced": as many draws as clips, classes equally likely
-    sampling: str = "length"
-    crop: str = "random"  # "random": a random T-frame crop of every clip each epoch; "start": the first T frames
-    grad_clip: float = 1.0  # max gradient norm; 0 disables
-    hidden: int = 0  # 0: the dataset's preset (config_for)
-    layers: int = 0
-
-    def __post_init__(self):
-        if self.epochs <= 0 or self.batch_size <= 0:
-            raise UserError(f"epochs and batch size must be positive, got {self.epochs} and {self.batch_size}")
-        if not self.lr > 0 or self.lr_final < 0:
-            raise UserError(f"learning rate must be positive, got {self.lr} (final {self.lr_final})")
-        if not 0 <= self.dropout < 1:
-            raise UserError(f"dropout must be in [0, 1), got {self.dropout}")
-        if not 1.0 <= self.speed <= 4.0:
-            raise UserError(f"speed must be in [1, 4] (1: no change), got {self.speed}")
-        if self.noise < 0:
-            raise UserError(f"noise must not be negative, got {self.noise}")
-        if not 0 <= self.rotate <= 180:
-            raise UserError(f"rotate must be in [0, 180] degrees, got {self.rotate}")
-        if self.weight_decay < 0:
-            raise UserError(f"weight decay must not be negative, got {self.weight_decay}")
-        if self.sampling not in SAMPLINGS:
-            raise UserError(f"unknown sampling {self.sampling!r}; valid: {', '.join(SAMPLINGS)}")
-        if self.crop not in ("random", "start"):
-            raise UserError(f"unknown crop {self.crop!r}; valid: random, start")
-        if self.grad_clip < 0 or self.threads < 0 or self.hidden < 0 or self.layers < 0:
-            raise UserError("grad_clip, threads, hidden and layers must not be negative")
-        super().__post_init__()
-
+from odmo_cli.training.loop import Progress, Trainer, TrainResult
 
 def crop_batch(clips: ClipSet, idx: np.ndarray, length: int, rng: np.random.Generator | None = None,
                speed: float = 1.0) -> np.ndarray:
@@ -227,12 +164,11 @@ class ClassifierTrainer(Trainer):
         }
 
 
-def train_classifier(clips: ClipSet, tc: ClassifierTrainConfig, out: str | Path,
-                     progress: Progress | None = None, resume: str | Path | None = None,
-                     device: str = "cpu") -> dict:
+def train_classifier(clips: ClipSet, tc: ClassifierTrainConfig, out: str | Path, *,
+                     resume: str | Path | None = None, progress: Progress | None = None,
+                     device: str = "cpu") -> TrainResult:
     """Train the dataset's classifier on real clips (or resume a checkpoint); write the checkpoint
-    `out` with its report; return the report. The same seed gives the same weights. `device`: as
-    train_odmo's."""
+    `out` with its report. The same seed gives the same weights. `device`: as train_odmo's."""
     if len(clips) == 0:
         raise UserError("no clips to train the classifier on")
     with thread_count(tc.threads), training_group(device) as group:
@@ -241,7 +177,7 @@ def train_classifier(clips: ClipSet, tc: ClassifierTrainConfig, out: str | Path,
         else:
             cfg = config_for(clips.manifest, hidden=tc.hidden or None, layers=tc.layers or None)
             trainer = ClassifierTrainer(clips, cfg, tc, out, group)
-        trainer.run(progress)
+        history = trainer.run(progress)
         report = trainer.report()
         trainer.save({"report": report})
-    return report
+    return TrainResult(Path(out), trainer.epoch, history, report)

@@ -15,7 +15,6 @@ run on N processes is a valid DVGAN run but not the single-process run's numbers
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -24,38 +23,15 @@ import torch
 from odmo_cli.data.dataset import MotionDataset, crops_from_start
 from odmo_cli.data.readers import ClipSet
 from odmo_cli.device import generator as seeded_generator
-from odmo_cli.errors import UserError
 from odmo_cli.models.dvgan import DVGAN, DVGANConfig, gradient_penalty, temporal_shift
 from odmo_cli.parallel import thread_count
+from odmo_cli.training.configs import DVGANTrainConfig
 from odmo_cli.training.distributed import training_group
-from odmo_cli.training.loop import LoopConfig, Progress, Trainer, TrainResult, dataset_shapes
-
-
-@dataclass
-class DVGANTrainConfig(LoopConfig):
-    # the paper runs 20,000 generator iterations with n_critic 10; at batch 64 on HumanAct12
-    # (1191 clips, 19 critic steps an epoch) that is about 10,500 epochs
-    epochs: int = 10500
-    batch_size: int = 64  # not given in the paper
-    lr: float = 1e-4  # Adam, §5.2; constant (lr_final 0)
-    val_fraction: float = 0.0  # a GAN has no validation loss; a `split` column still holds out val/test
-    val_every: int = 0
-    betas: tuple[float, float] = (0.0, 0.9)  # not given; WGAN-GP's own choice (DVGAN builds on it)
-    n_critic: int = 10  # discriminator steps per generator step (§5.2)
-    gp_lambda: float = 10.0  # eq. 3
-
-    def __post_init__(self):
-        self.betas = tuple(self.betas)
-        if self.epochs <= 0 or self.batch_size <= 0 or self.n_critic <= 0:
-            raise UserError(f"epochs, batch size and n_critic must be positive, got {self.epochs}, "
-                            f"{self.batch_size} and {self.n_critic}")
-        if self.lr <= 0:
-            raise UserError(f"the learning rate must be positive, got {self.lr}")
-        super().__post_init__()
+from odmo_cli.training.loop import Progress, Trainer, TrainResult, dataset_shapes
 
 
 def model_config_for(clips: ClipSet, generator: str = "cnn", overrides: dict | None = None) -> DVGANConfig:
-    return DVGANConfig.from_dict({**dataset_shapes(clips), "generator": generator, **(overrides or {})})
+    return DVGANConfig.from_dict({**DVGANConfig.pick(dataset_shapes(clips)), "generator": generator, **(overrides or {})})
 
 
 class DVGANTrainer(Trainer):
@@ -142,9 +118,9 @@ class DVGANTrainer(Trainer):
         return log
 
 
-def train_dvgan(clips: ClipSet, tc: DVGANTrainConfig, out: Path, generator: str = "cnn",
-                overrides: dict | None = None, resume: Path | None = None,
-                progress: Progress | None = None, device: str = "cpu") -> TrainResult:
+def train_dvgan(clips: ClipSet, tc: DVGANTrainConfig, out: str | Path, *, generator: str = "cnn",
+                overrides: dict | None = None, resume: Path | None = None, progress: Progress | None = None,
+                device: str = "cpu") -> TrainResult:
     """Train DVGAN on clips (or resume a checkpoint, keeping its model and schedule). `device`:
     as train_odmo's."""
     with thread_count(tc.threads), training_group(device) as group:

@@ -33,7 +33,6 @@ the last completed epoch, as for Ctrl-C.
 from __future__ import annotations
 
 import copy
-import math
 import signal
 import threading
 import time
@@ -47,50 +46,15 @@ import torch
 
 from odmo_cli.checkpoint import (FORMAT_VERSION, cpu_tensors, dataset_description, load_checkpoint, restore_rng,
                                  rng_state, save_checkpoint)
-from odmo_cli.config import Config, non_finite_field
 from odmo_cli.data.dataset import split_indices
 from odmo_cli.data.readers import ClipSet
 from odmo_cli.device import generator
 from odmo_cli.errors import PeerStopped, TrainingError, UserError
+from odmo_cli.config import Config
+from odmo_cli.training.configs import LoopConfig
 from odmo_cli.training.distributed import Group, peer_lost
 
 Progress = Callable[[dict], None]  # called after every epoch with that epoch's log (a dict)
-
-
-@dataclass
-class LoopConfig(Config):
-    """What every trainer's config has; each model's config subclasses it with its own defaults."""
-
-    epochs: int = 100
-    batch_size: int = 64
-    lr: float = 1e-3
-    lr_final: float = 0.0  # cosine decay from lr to lr_final over the epochs; 0 (or = lr): constant lr
-    val_fraction: float = 0.1  # per-class held-out share (a `split` column in the data wins)
-    # seed of the train/validation split; -1: `seed`. A stage started from another model's weights
-    # keeps that model's split (training.odmo), so its validation clips stay unseen whatever its seed.
-    split_seed: int = -1
-    val_every: int = 10  # epochs between validations; 0: never
-    checkpoint_every: int = 25  # epochs between checkpoints (and one at the end); 0: only at the end
-    seed: int = 0
-    threads: int = 0  # torch intra-op threads while training; 0 leaves torch's default
-
-    def __post_init__(self):
-        if bad := non_finite_field(self):
-            raise UserError(f"--{bad[0].replace('_', '-')} must be a finite number, got {bad[1]}")
-        if not 0 <= self.val_fraction < 1:
-            raise UserError(f"validation fraction must be in [0, 1), got {self.val_fraction}")
-        if self.split_seed < -1:
-            raise UserError(f"split seed must be a seed or -1 (the run's seed), got {self.split_seed}")
-        if min(self.val_every, self.checkpoint_every, self.threads) < 0:
-            raise UserError("val_every, checkpoint_every and threads must not be negative")
-
-    def data_split_seed(self) -> int:
-        """The seed the train/validation split is drawn with."""
-        return self.seed if self.split_seed < 0 else self.split_seed
-
-    def learning_rate(self, epoch: int) -> float:
-        """The rate of 0-based `epoch`."""
-        return cosine_rate(self.lr, self.lr_final or self.lr, epoch, self.epochs)
 
 
 def dataset_shapes(clips: ClipSet) -> dict:
@@ -99,12 +63,6 @@ def dataset_shapes(clips: ClipSet) -> dict:
     m = clips.manifest
     return dict(n_joints=m.skeleton.n_joints, n_classes=len(m.actions), length=m.clip_length,
                 skeleton=m.skeleton_name, actions=list(m.action_names), up_axis=m.skeleton.up_index)
-
-
-def cosine_rate(lr: float, lr_final: float, epoch: int, epochs: int) -> float:
-    """Cosine decay from lr (epoch 0) to lr_final (the last of `epochs`)."""
-    frac = epoch / max(epochs - 1, 1)
-    return lr_final + 0.5 * (lr - lr_final) * (1 + math.cos(math.pi * frac))
 
 
 def resume_epochs(path: str | Path | None, epochs: int | None) -> int | None:
@@ -241,9 +199,9 @@ class Trainer:
             raise UserError(f"cannot resume: {path} holds a {ckpt.get('kind')!r} model, not {cls.kind}")
         if "rng" not in ckpt or "epoch" not in ckpt:
             raise UserError(f"cannot resume: {path} has no training state (a compact, shipped file?)")
-        saved = type(tc).from_dict(ckpt["train_config"])
+        saved = type(tc).from_saved(ckpt["train_config"])
         tc = replace(saved, epochs=max(tc.epochs, saved.epochs), threads=tc.threads or saved.threads)
-        trainer = cls(clips, cls.config_class.from_dict(ckpt["config"]), tc, out, group)
+        trainer = cls(clips, cls.config_class.from_saved(ckpt["config"]), tc, out, group)
         trainer.load_state(ckpt)
         if Path(path).resolve() == trainer.out.resolve():
             trainer._saved_epoch = trainer.epoch

@@ -11,111 +11,31 @@ for the whole batch and computes its share of the pairs (training/distributed.py
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from odmo_cli import metrics, plausibility
 from odmo_cli.checkpoint import dataset_description, float_state, load_checkpoint, odmo_config
 from odmo_cli.data.dataset import MotionDataset, crops_from_start, mirror_map, mirror_rows, pair_indices
 from odmo_cli.data.readers import ClipSet
 from odmo_cli.device import model_device
 from odmo_cli.errors import UserError
-from odmo_cli.latent import ActionModes, assign, fit_modes, latent_bank, separation
+from odmo_cli.measures import diagnostics, plausibility
+from odmo_cli.models.latent import ActionModes, assign, codes_and_ends, fit_modes, separation
 from odmo_cli.models.losses import odmo_terms, total_loss
 from odmo_cli.models.odmo import ODMO, ODMOConfig, preset_values, widen_pose_decoder
 from odmo_cli.parallel import thread_count
+from odmo_cli.training.configs import LoopConfig, PARTS, TrainConfig  # noqa: F401
 from odmo_cli.training.distributed import training_group
-from odmo_cli.training.loop import LoopConfig, Progress, Trainer, TrainResult, dataset_shapes
-
-
-PARTS = ("encoder", "trajectory", "motion")  # ODMO's networks: the LMP encoder, trajectory and pose generators
-
-
-@dataclass
-class TrainConfig(LoopConfig):
-    epochs: int = 300
-    batch_size: int = 256  # pairs per step (each step sees 2 x batch_size clips)
-    lr: float = 1e-3
-    lr_final: float = 0.0  # cosine decay from lr to lr_final over the epochs; 0 (or = lr): constant, the paper's
-    tf_start: float = 1.0
-    tf_end: float = 0.3
-    tf_epochs: int = 0  # teacher forcing decays linearly over this many epochs (0: all epochs)
-    tf_per: str = "step"  # one teacher-forcing coin per time step for the batch (the release), or per "clip" and step
-    # first epoch (0-based) of the free-running L_energy (ODMOConfig.free_energy_weight); -1: once
-    # teacher forcing has decayed (tf_epochs), or from half the epochs when it decays over all of them
-    free_from: int = -1
-    pairs_per_epoch: int = 0  # 0: as many pairs as training clips
-    same_class_fraction: float = 0.5  # the release pairs each clip with its class half the time; < 0: independent pairs
-    # augmentation (neither the paper's nor the release's): each clip of a batch mirrored with
-    # probability 1/2, left and right swapped across the first ground axis (data.dataset.mirror)
-    mirror: bool = False
-    grad_clip: float = 1.0  # as in the authors' release
-    weight_decay: float = 0.0  # > 0: AdamW's decoupled weight decay (neither the paper's nor the release's)
-    # > 0: each of the pose decoder's hidden units dropped with this probability in what its two cells
-    # pass on, the same units at every step of a clip (variational dropout; neither the paper's nor the release's)
-    decoder_dropout: float = 0.0
-    # which T frames of each training clip a batch holds: "random" (a fresh crop each time, the release's)
-    # or "first" (the first T, the crops the latent bank, the mode mixtures and validation encode)
-    crops: str = "random"
-    # the networks this run trains, comma-separated (PARTS); "": all. The others keep their weights
-    # (a stage that should change what sampling draws of one part and leave the rest as they are)
-    train_parts: str = ""
-    # scale of the posterior noise on the codes the decoders see: z = mu + code_noise * std * eps. 1: the
-    # VAE's reparameterisation (the paper's and the release's); 0: each crop's mean code, as sampling's
-    # mixtures are fitted on them (neither's). L_es and the KL read the posterior itself, not z.
-    code_noise: float = 1.0
-
-    def __post_init__(self):
-        if self.epochs <= 0 or self.batch_size <= 0:
-            raise UserError(f"epochs and batch size must be positive, got {self.epochs} and {self.batch_size}")
-        bad = [p for p in self.parts() if p not in PARTS]
-        if bad or (self.train_parts and not self.parts()):
-            raise UserError(f"unknown part {(bad or [self.train_parts])[0]!r} to train; valid: {', '.join(PARTS)} "
-                            "(comma-separated)")
-        if self.lr <= 0 or self.lr_final < 0:
-            raise UserError(f"learning rates must be positive (--lr-final 0: constant), got {self.lr} and {self.lr_final}")
-        if not (0 <= self.tf_end <= 1 and 0 <= self.tf_start <= 1):
-            raise UserError("teacher-forcing rates must be in [0, 1]")
-        if self.free_from < -1:
-            raise UserError(f"--free-from must be an epoch (or -1: once teacher forcing has decayed), got {self.free_from}")
-        if self.tf_per not in ("step", "clip"):
-            raise UserError(f"teacher forcing per step or clip, got {self.tf_per!r}")
-        if self.weight_decay < 0:
-            raise UserError(f"--weight-decay must not be negative, got {self.weight_decay}")
-        if self.crops not in ("random", "first"):
-            raise UserError(f"--crops must be random or first, got {self.crops!r}")
-        if not 0 <= self.decoder_dropout < 1:
-            raise UserError(f"--decoder-dropout must be in [0, 1), got {self.decoder_dropout}")
-        if not 0 <= self.code_noise < math.inf:  # also refuses nan, which every comparison fails
-            raise UserError(f"--code-noise must be a finite number >= 0, got {self.code_noise}")
-        if self.same_class_fraction > 1:
-            raise UserError(f"--same-class-fraction must be in [0, 1], got {self.same_class_fraction}")
-        super().__post_init__()
-
-    def parts(self) -> list[str]:
-        """The networks this run trains (ODMO's submodules; all when train_parts is empty)."""
-        return [p.strip() for p in self.train_parts.split(",") if p.strip()] if self.train_parts else list(PARTS)
-
-    def free_start(self) -> int:
-        """The first epoch (0-based) that trains the free-running decode."""
-        if self.free_from >= 0:
-            return self.free_from
-        return self.tf_epochs or self.epochs // 2
-
-    def teacher_rate(self, epoch: int) -> float:
-        span = self.tf_epochs or self.epochs
-        frac = min(epoch / max(span - 1, 1), 1.0)
-        return self.tf_start + (self.tf_end - self.tf_start) * frac
+from odmo_cli.training.loop import Progress, Trainer, TrainResult, dataset_shapes
 
 
 def model_config_for(clips: ClipSet, overrides: dict | None = None, preset: str = "odmo") -> ODMOConfig:
     """ODMOConfig for the clips' dataset: its shapes, the preset's loss scales (models.odmo.PRESETS),
     then `overrides`."""
-    return ODMOConfig.from_dict({**dataset_shapes(clips), **preset_values(preset, clips.manifest.name),
+    return ODMOConfig.from_dict({**ODMOConfig.pick(dataset_shapes(clips)), **preset_values(preset, clips.manifest.name),
                                  **(overrides or {})})
 
 
@@ -216,7 +136,7 @@ class ODMOTrainer(Trainer):
             self.model.load_state_dict(state)
         except RuntimeError as e:  # a size or a key that differs (an override of the architecture)
             raise UserError(f"--init {source}'s weights do not fit this model: {str(e).splitlines()[-1].strip()}") from None
-        # the model config too, so that every stage's model values can be checked (files before 2026-12-06 lack it)
+        # the model config too, so that every stage's model values can be checked (older files lack it)
         self.init = {"source": source, "epoch": int(ckpt["epoch"]), "train_config": ckpt["train_config"],
                      "config": ckpt["config"], **({"init": ckpt["init"]} if ckpt.get("init") else {})}
 
@@ -258,14 +178,27 @@ class ODMOTrainer(Trainer):
         return reconstruction_error(self.model, self.clips, idx)
 
 
+def latent_bank(model: ODMO, clips: ClipSet, idx: np.ndarray, batch: int = 512) -> dict:
+    """Codes of the canonical crop (first T frames) of clips[idx] -> plain-value dict of tensors."""
+    data = MotionDataset(clips, model.cfg.length, random_crop=False)
+    codes, ends = codes_and_ends(model, (data.batch(idx[b:b + batch])[0] for b in range(0, len(idx), batch)))
+    return {
+        "codes": codes,  # (N, D)
+        "labels": torch.from_numpy(clips.labels[idx].copy()),  # (N,)
+        "end_points": ends,  # (N, 3)
+        "modes": torch.from_numpy(clips.modes[idx].copy()),  # (N,) -1 when unknown
+        "names": [clips.names[i] for i in idx],
+    }
+
+
 @torch.no_grad()
 def reconstruction_error(model: ODMO, clips: ClipSet, idx: np.ndarray, batch: int = 512) -> dict[str, float]:
     """Free-running reconstruction of clips[idx] from their mean codes and real end points (as at
     sampling time, no teacher forcing): mean per-joint position error and end-point error (dataset
     units), the error of the body about its root beside that of the clips' own action-mean body
-    (metrics.body_error, metrics.mean_pose_error), and the body's speed and amplitude over the clips'
-    own (metrics.damping_ratios), and the root height's amplitude over theirs ("height", the mean over
-    actions of metrics.root_height_speed_and_amplitude's ratio)."""
+    (diagnostics.body_error, diagnostics.mean_pose_error), and the body's speed and amplitude over the
+    clips' own (diagnostics.damping_ratios), and the root height's amplitude over theirs ("height", the
+    mean over actions of diagnostics.root_height_speed_and_amplitude's ratio)."""
     model.eval()
     dev = model_device(model)
     joint_err, end_err, recons, reals, labs = [], [], [], [], []
@@ -280,13 +213,13 @@ def reconstruction_error(model: ODMO, clips: ClipSet, idx: np.ndarray, batch: in
         reals.append(motion.numpy())
         labs.append(labels.numpy())
     labs, recons, reals = np.concatenate(labs), np.concatenate(recons), np.concatenate(reals)
-    damp = metrics.damping_ratios(recons, labs, reals, labs)
+    damp = diagnostics.damping_ratios(recons, labs, reals, labs)
     up = model.cfg.up_axis
-    height = metrics.class_ratios(metrics.root_height_speed_and_amplitude(recons, up)[1], labs,
-                                  metrics.root_height_speed_and_amplitude(reals, up)[1], labs)
+    height = diagnostics.class_ratios(diagnostics.root_height_speed_and_amplitude(recons, up)[1], labs,
+                                      diagnostics.root_height_speed_and_amplitude(reals, up)[1], labs)
     return {"mpjpe": float(torch.cat(joint_err).mean()), "end_error": float(torch.cat(end_err).mean()),
-            "body": metrics.body_error(recons, reals), "body_mean_pose": metrics.mean_pose_error(reals, labs),
-            "speed": damp["speed"], "amplitude": damp["amplitude"], "height": metrics.mean_finite(height.values()),
+            "body": diagnostics.body_error(recons, reals), "body_mean_pose": diagnostics.mean_pose_error(reals, labs),
+            "speed": damp["speed"], "amplitude": damp["amplitude"], "height": diagnostics.mean_finite(height.values()),
             **plausible(recons, reals, labs, clips)}
 
 
@@ -294,7 +227,7 @@ PLAUSIBLE_REPORTED = ("foot_skate", "foot_contact", "root_up", "root_ground", "k
 
 
 def plausible(recons: np.ndarray, reals: np.ndarray, labels: np.ndarray, clips: ClipSet) -> dict[str, float]:
-    """The evaluation's plausibility measures (odmo_cli.plausibility.compare) of decodes against the clips
+    """The evaluation's plausibility measures (measures.plausibility.compare) of decodes against the clips
     they decode, overall only ("real_foot_skate" and "real_foot_contact": the clips' own, the floor)."""
     m = clips.manifest
     frame = plausibility.frame_for(m.skeleton, m.fps, reals)
@@ -308,7 +241,7 @@ def plausible(recons: np.ndarray, reals: np.ndarray, labels: np.ndarray, clips: 
 
 @torch.no_grad()
 def noise_ceiling(model: ODMO, clips: ClipSet, idx: np.ndarray, seed: int, batch: int = 512) -> dict[str, float]:
-    """metrics.noise_ceiling of the model's own posterior over clips[idx] (canonical crops): the
+    """diagnostics.noise_ceiling of the model's own posterior over clips[idx] (canonical crops): the
     speed and amplitude that the best squared-error decoder could reach under that noise, and the
     least body error about the root it could reach."""
     model.eval()
@@ -320,13 +253,13 @@ def noise_ceiling(model: ODMO, clips: ClipSet, idx: np.ndarray, seed: int, batch
         stds.append(torch.exp(0.5 * logvar).cpu().numpy())
         motions.append(motion.numpy())
         labels.append(lab.numpy())
-    c = metrics.noise_ceiling(np.concatenate(mus), np.concatenate(stds), np.concatenate(motions),
+    c = diagnostics.noise_ceiling(np.concatenate(mus), np.concatenate(stds), np.concatenate(motions),
                               np.concatenate(labels), np.random.default_rng(seed), draws=2)
     return {"speed": c["speed"], "amplitude": c["amplitude"], "body": c["body"]}
 
 
 def mode_homogeneity(clips: ClipSet, idx: np.ndarray, bank: dict, modes: dict, length: int) -> float:
-    """metrics.mode_homogeneity (ODMO §4.3.1) of the canonical crops of clips[idx], each in the
+    """diagnostics.mode_homogeneity (ODMO §4.3.1) of the canonical crops of clips[idx], each in the
     discovered mode its bank code falls in: percent by which the modes split each action's real
     motions into tighter groups (0: no better than one group). Actions with one clip are left out."""
     motions, labels = crops_from_start(clips, idx, length)
@@ -339,7 +272,7 @@ def mode_homogeneity(clips: ClipSet, idx: np.ndarray, bank: dict, modes: dict, l
     keep = np.isin(labels, [a for a in np.unique(labels) if np.count_nonzero(labels == a) >= 2])
     if not keep.any():
         return float("nan")
-    return metrics.mode_homogeneity(motions.numpy()[keep], labels[keep], found[keep])
+    return diagnostics.mode_homogeneity(motions.numpy()[keep], labels[keep], found[keep])
 
 
 def finish(trainer: ODMOTrainer, extra: dict | None = None) -> dict:
@@ -347,7 +280,7 @@ def finish(trainer: ODMOTrainer, extra: dict | None = None) -> dict:
     The same reconstruction of the training clips ("train_"; their first crops) says whether the decoder
     fits the clips it learnt from: a body error there no lower than the action-mean body's is under-fitting,
     one far under the held-out error over-fitting. The held-out bodies against the training clips' own
-    motions (metrics.retrieval_errors: the one with the nearest code, and the best one) say how much the
+    motions (diagnostics.retrieval_errors: the one with the nearest code, and the best one) say how much the
     decoder adds to a lookup, and how far it is from the best that any one training clip fits."""
     model, clips = trainer.model, trainer.clips
     bank = latent_bank(model, clips, trainer.train_idx)
@@ -365,7 +298,7 @@ def finish(trainer: ODMOTrainer, extra: dict | None = None) -> dict:
     }
     if len(trainer.val_idx):  # the held-out bodies against the training clips' own motions
         length = trainer.cfg.length
-        retrieved = metrics.retrieval_errors(
+        retrieved = diagnostics.retrieval_errors(
             crops_from_start(clips, held, length)[0].numpy(), held_bank["labels"].numpy(), held_bank["codes"].numpy(),
             crops_from_start(clips, trainer.train_idx, length)[0].numpy(), bank["labels"].numpy(), bank["codes"].numpy())
         report.update({f"held_out_body_{k}": v for k, v in retrieved.items()})
@@ -380,16 +313,18 @@ def same_split(tc: TrainConfig, ckpt: dict) -> TrainConfig:
     """tc with the train/validation split of the checkpoint `ckpt` (its val_fraction and split seed):
     a stage drawn on another split would train on clips the earlier stages held out and validate on
     clips they trained on."""
-    before = LoopConfig.from_dict(ckpt.get("train_config", {}))
+    before = LoopConfig(**LoopConfig.pick(ckpt.get("train_config", {})))
     return replace(tc, val_fraction=before.val_fraction, split_seed=before.data_split_seed())
 
 
-def train_odmo(clips: ClipSet, tc: TrainConfig, out: Path, overrides: dict | None = None,
-               resume: Path | None = None, progress: Progress | None = None,
-               preset: str = "odmo", device: str = "cpu", init: Path | None = None) -> TrainResult:
+def train_odmo(clips: ClipSet, tc: TrainConfig, out: str | Path, *, preset: str = "odmo", init: Path | None = None,
+               overrides: dict | None = None, resume: Path | None = None, progress: Progress | None = None,
+               device: str = "cpu") -> TrainResult:
     """Train ODMO on clips (or resume a checkpoint), then write the final checkpoint with its bank.
+    `preset`: the loss scales (models.odmo.PRESETS) under `overrides`, the model config's values.
     `init`: start from that finished checkpoint's weights, model config (`overrides` on top; the
-    preset is not applied) and train/validation split. `device`: --device's value; under torchrun (or `launch`) one of several processes."""
+    preset is not applied) and train/validation split. `device`: --device's value; under torchrun (or
+    `launch`) one of several processes."""
     if init is not None and resume is not None:
         raise UserError("give either --init (start a new stage from a model's weights) or --resume, not both")
     with thread_count(tc.threads), training_group(device) as group:
@@ -404,7 +339,7 @@ def train_odmo(clips: ClipSet, tc: TrainConfig, out: Path, overrides: dict | Non
             kept = odmo_config(f"--init {init}", ckpt.get("config", {}))
             # files written before the config named its skeleton take the dataset's
             cfg = ODMOConfig.from_dict({"skeleton": clips.manifest.skeleton_name, "bones": "free",
-                                        **ckpt.get("config", {}), **(overrides or {})})
+                                        **ODMOConfig.pick(ckpt.get("config", {})), **(overrides or {})})
             if cfg.pose_frame != kept.pose_frame:  # same shapes, other meaning: would load silently
                 raise UserError(f"--init {Path(init).name} draws poses in the {kept.pose_frame} frame; "
                                 f"a stage from it keeps that frame, not {cfg.pose_frame}")

@@ -20,14 +20,14 @@ with the nearest valid name.
 
 from __future__ import annotations
 
-import difflib
 import sys
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
+from odmo_cli.config import unknown_key
 from odmo_cli.errors import UserError
-from odmo_cli.models.odmo import ODMOConfig
-from odmo_cli.training.odmo import TrainConfig
+from odmo_cli.models.odmo_config import ODMOConfig
+from odmo_cli.training.configs import TrainConfig
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -92,9 +92,7 @@ class Recipe:
 def _refuse_unknown(where: str, given: dict, valid) -> None:
     for key in given:
         if key not in valid:
-            near = difflib.get_close_matches(key, list(valid), n=1)
-            hint = f"; did you mean {near[0]!r}?" if near else f"; valid: {', '.join(valid)}"
-            raise UserError(f"{where}: unknown key {key!r}{hint}")
+            raise UserError(f"{where}: {unknown_key(key, valid)}")
 
 
 def _table(where: str, value) -> dict:
@@ -150,8 +148,8 @@ def load_recipe(path: str | Path) -> Recipe:
     return recipe
 
 
-def train_recipe(clips, recipe: Recipe, out: Path, seed: int = 0, resume: Path | None = None, progress=None,
-                 device: str = "cpu", threads: int = 0):
+def train_recipe(clips, recipe: Recipe, out: str | Path, *, seed: int = 0, threads: int = 0,
+                 resume: Path | None = None, progress=None, device: str = "cpu"):
     """Train ODMO on clips with the recipe's phases in one run (or resume such a run's checkpoint),
     then write the final checkpoint with its bank, mode mixtures and report (training.odmo.finish), the
     report with the run's hours and pairs seen. `progress` gets every epoch's log with "epoch" counted

@@ -1,8 +1,9 @@
-"""The latent bank of a trained ODMO model and what it says about the latent space.
+"""ODMO's "M": the latent space of a trained model and the mode mixtures sampling draws from.
 
-The bank holds, for every training clip, its mean code mu(P), action, end point and (where the
-dataset has them) ground-truth mode: what mode discovery and KNN end points need, so sampling
-never needs the dataset.
+A latent bank holds, for every training clip, its mean code mu(P), action, end point and (where the
+dataset has them) ground-truth mode; training writes it (training.odmo.latent_bank), and a file refitted
+on random crops holds a crop bank beside it (generation.generate.crop_bank). They hold what mode
+discovery and KNN end points need, so sampling never needs the dataset; nothing here reads one.
 """
 
 from __future__ import annotations
@@ -12,13 +13,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from odmo_cli.data.dataset import MotionDataset, crop_pad_shift, random_start
-from odmo_cli.data.readers import ClipSet
 from odmo_cli.device import model_device
 
 
 @torch.no_grad()
-def _codes_and_ends(model, batches) -> tuple[torch.Tensor, torch.Tensor]:
+def codes_and_ends(model, batches) -> tuple[torch.Tensor, torch.Tensor]:
     """Encoder means and last-frame roots of motion batches, each (B, T, J, 3) -> (N, D), (N, 3)."""
     model.eval()
     dev = model_device(model)
@@ -28,56 +27,6 @@ def _codes_and_ends(model, batches) -> tuple[torch.Tensor, torch.Tensor]:
         codes.append(mu.cpu())
         ends.append(motion[:, -1, 0])
     return torch.cat(codes), torch.cat(ends)
-
-
-def latent_bank(model, clips: ClipSet, idx: np.ndarray, batch: int = 512) -> dict:
-    """Codes of the canonical crop (first T frames) of clips[idx] -> plain-value dict of tensors."""
-    data = MotionDataset(clips, model.cfg.length, random_crop=False)
-    codes, ends = _codes_and_ends(model, (data.batch(idx[b:b + batch])[0] for b in range(0, len(idx), batch)))
-    return {
-        "codes": codes,  # (N, D)
-        "labels": torch.from_numpy(clips.labels[idx].copy()),  # (N,)
-        "end_points": ends,  # (N, 3)
-        "modes": torch.from_numpy(clips.modes[idx].copy()),  # (N,) -1 when unknown
-        "names": [clips.names[i] for i in idx],
-    }
-
-
-# The authors' release fits each action's mode mixture, and finds the KNN end points, on the encoder
-# means of random crops of the training clips: `num_itr` passes of its training loader, 2048 clips a
-# pass drawn class-balanced (create_GMM in ensemble.py; num_itr in inference_odmo.py). The paper does
-# not say which crops; one code per clip (the bank above) sees only each clip's first T frames.
-CROP_PASSES = {"humanact12": 15, "cmu_mocap": 5, "uestc": 8}  # the release's num_itr
-DEFAULT_CROP_PASSES = 5
-CROPS_PER_PASS = 2048
-
-
-def crop_bank(model, clips: ClipSet, idx: np.ndarray, passes: int, rng: np.random.Generator,
-              per_pass: int = CROPS_PER_PASS, batch: int = 512) -> dict:
-    """Codes of `passes` x `per_pass` random crops of clips[idx], drawn class-balanced (every action
-    equally often, clips uniformly within it) as the release's loader draws them; a crop drawn twice
-    (same clip, same start) is kept once. Keys: codes, labels, end_points as latent_bank's; clip (the
-    crop's position in idx, which is the latent bank's order when idx is its), start, passes."""
-    if passes < 1:
-        raise ValueError(f"passes must be at least 1, got {passes}")
-    labels = clips.labels[idx]
-    actions = np.unique(labels)
-    T = model.cfg.length
-    per_action = max(1, passes * per_pass // len(actions))
-    pairs = set()  # (position in idx, start)
-    for a in actions:
-        for p in rng.choice(np.flatnonzero(labels == a), per_action):
-            pairs.add((int(p), random_start(len(clips.motions[idx[p]]), T, rng)))
-    pairs = sorted(pairs)
-    codes, ends = _codes_and_ends(model, (
-        torch.stack([torch.from_numpy(crop_pad_shift(clips.motions[idx[p]], T, s)) for p, s in pairs[b:b + batch]])
-        for b in range(0, len(pairs), batch)))
-    return {"codes": codes,  # (M, D)
-            "labels": torch.from_numpy(labels[[p for p, _ in pairs]].copy()),  # (M,)
-            "end_points": ends,  # (M, 3)
-            "clip": torch.tensor([p for p, _ in pairs], dtype=torch.int32),  # (M,)
-            "start": torch.tensor([s for _, s in pairs], dtype=torch.int32),  # (M,)
-            "passes": passes}
 
 
 def centroids(codes: np.ndarray, labels: np.ndarray, n_classes: int) -> np.ndarray:
@@ -265,11 +214,16 @@ def assign(modes: ActionModes, codes: np.ndarray) -> np.ndarray:
     return np.atleast_2d(logp).argmax(-1)
 
 
+def adjusted_rand(labels_true: np.ndarray, labels_pred: np.ndarray) -> float:
+    """Adjusted Rand index between two clusterings (N,) (sklearn.metrics.adjusted_rand_score)."""
+    from sklearn.metrics import adjusted_rand_score
+
+    return float(adjusted_rand_score(np.asarray(labels_true), np.asarray(labels_pred)))
+
+
 def mode_report(bank: dict, modes: dict, actions: list[str]) -> list[dict]:
     """Per action: modes found, member counts, silhouettes and, where the bank has ground-truth
     modes, the adjusted Rand index between discovered and true modes."""
-    from odmo_cli.metrics import adjusted_rand
-
     codes, labels, truth = bank["codes"].numpy(), bank["labels"].numpy(), bank["modes"].numpy()
     rows = []
     for a, name in enumerate(actions):

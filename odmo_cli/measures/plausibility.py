@@ -3,7 +3,7 @@
 Pure functions, numpy in, numpy or floats out. Motions are (N, T, J, 3) in the dataset's frame and
 units; the caller says which coordinate is up (`up`, with its sign), which joints are feet, the frame
 rate and the body's leg length, which scales the thresholds so that one definition serves every
-skeleton (docs/evaluation.md, "Plausibility").
+skeleton (docs/evaluation.md, "What an animator sees").
 
 - Foot contact and skating, after GMD (Karunratanakul et al., ICCV 2023): a foot joint is in contact
   while it is within CONTACT_HEIGHT leg lengths of its own lowest point in the motion, and it skates
@@ -26,9 +26,11 @@ from typing import Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from odmo_cli.measures.diagnostics import class_ratios, mean_finite
+
 CONTACT_HEIGHT = 0.0625  # leg lengths above the joint's lowest point (GMD: 5 cm for a 0.8 m leg)
 SLIDE_SPEED = 0.625  # leg lengths per second on the ground plane (GMD: 2.5 cm a frame at 20 fps, 0.8 m leg)
-SMOOTH = 3  # frames of centred moving average before speeds are taken (as metrics.body_speed)
+SMOOTH = 3  # frames of centred moving average before speeds are taken (as diagnostics.body_speed)
 COVERAGE_K = 5  # nearest neighbours of Naeem et al.'s coverage and density
 
 
@@ -209,8 +211,6 @@ def compare(gen: dict, gen_labels: ArrayLike, real: dict, real_labels: ArrayLike
     action ("<measure>/<action index>"). `scale`: the z-scoring of the kinetic features (`standardizer`
     of a real set). Root speeds are ratios to the real set's, per action, and their mean over actions;
     coverage and density are taken within each action, then averaged; foot shares are pooled."""
-    from odmo_cli.metrics import class_ratios, mean_finite
-
     gy, ry = np.asarray(gen_labels), np.asarray(real_labels)
     mean, std = scale
     gz, rz = (gen["kinetic"] - mean) / std, (real["kinetic"] - mean) / std
