@@ -10,6 +10,7 @@ import sys
 from odmo_cli.cli import data_commands  # noqa: F401
 from odmo_cli.cli import train_commands  # noqa: F401
 from odmo_cli.cli import generate_commands  # noqa: F401
+from odmo_cli.cli import compose_commands  # noqa: F401
 from odmo_cli.cli import eval_commands  # noqa: F401
 from odmo_cli.cli.common import app
 
