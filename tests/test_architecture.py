@@ -22,11 +22,11 @@ FLOORS = [
     ["models"],
     ["checkpoint"],
     ["training", "generation"],
-    ["evaluation", "ship", "viz"],
+    ["evaluation", "ship"],
     ["cli", "__main__"],
 ]
 # The package root holds the entry points and small shared utilities; everything else lives in a subpackage.
-ROOT_MODULES = {"__init__", "__main__", "errors", "config", "parallel", "device", "io", "checkpoint", "ship", "viz"}
+ROOT_MODULES = {"__init__", "__main__", "errors", "config", "parallel", "device", "io", "checkpoint", "ship"}
 
 
 def module_name(path: Path) -> str:

@@ -465,7 +465,7 @@ def test_render_compare_real(run, tmp_path, humanact12_dir):
     with Image.open(tmp_path / "c.png") as im:
         assert im.size == (400, 400)
     from odmo_cli.geometry.skeletons import get_skeleton
-    from odmo_cli.viz import real_examples
+    from odmo_cli.formats.viz import real_examples
 
     real = real_examples(None, get_skeleton("humanact12"), ["walk", "jump"], 60, humanact12_dir, seed=0)
     assert real.shape == (2, 60, 24, 3) and np.allclose(real[:, 0, 0], 0)

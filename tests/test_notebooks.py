@@ -26,7 +26,7 @@ REPO = Path(__file__).resolve().parents[1]
 NOTEBOOKS = sorted((REPO / "notebooks").glob("*.ipynb"))
 EXPECTED = ["01_lmp_decomposition", "02_spring_energy_prior", "03_gmm_mode_discovery", "04_lie_vs_xyz",
             "05_model_and_training", "06_evaluation_metrics", "07_long_motions"]
-HELPERS = ("live", "draw_pose", "cube")  # odmo_cli.viz's notebook helpers: imported, never copied
+HELPERS = ("live", "draw_pose", "cube")  # odmo_cli.formats.viz's notebook helpers: imported, never copied
 WIDGET = "application/vnd.jupyter.widget-view+json"
 PACKAGE_ROOT = Path(odmo_cli.__file__).resolve().parents[1]
 
@@ -82,7 +82,7 @@ def test_the_notebooks_are_there_and_stored_clean():
         assert "from odmo_cli" in code_of(nb), path.name
         assert "nn.Module" not in code_of(nb), f"{path.name} defines a model: use odmo_cli's"
         copied = [h for h in HELPERS if f"def {h}(" in code_of(nb)]
-        assert not copied, f"{path.name} defines {copied}: import them from odmo_cli.viz"
+        assert not copied, f"{path.name} defines {copied}: import them from odmo_cli.formats.viz"
 
 
 def test_executed_copies_are_in_sync():

@@ -1,4 +1,4 @@
-"""The notebook helpers of odmo_cli.viz: cube, draw_pose, live and animation_html (headless)."""
+"""The notebook helpers of odmo_cli.formats.viz: cube, draw_pose, live and animation_html (headless)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 
-from odmo_cli import viz
+from odmo_cli.formats import viz
 from odmo_cli.errors import UserError
 from odmo_cli.geometry.skeletons import get_skeleton
 

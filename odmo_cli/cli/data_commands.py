@@ -164,7 +164,7 @@ def data_show(dataset: DatasetArg, action: Annotated[str, typer.Option("--action
 
     from odmo_cli.data.dataset import crop_pad_shift
     from odmo_cli.data.readers import read_dataset
-    from odmo_cli.viz import animate
+    from odmo_cli.formats.viz import animate
 
     if n <= 0:
         raise UserError(f"--n must be a positive number of clips, got {n}")

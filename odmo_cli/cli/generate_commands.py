@@ -104,7 +104,7 @@ def sample_cmd(
     batch.save(out, up, loaded)  # decodes batch by batch while writing: memory stays flat in n
     if gif is not None:
         from odmo_cli.geometry.skeletons import get_skeleton
-        from odmo_cli.viz import animate
+        from odmo_cli.formats.viz import animate
 
         k = min(len(batch), 8)
         _, notice = animate(batch.head(k, loaded), get_skeleton(batch.dataset["skeleton"]), gif, fps=batch.dataset["fps"],
@@ -162,7 +162,7 @@ def render_cmd(
     data: DataOpt = None, seed: SeedOpt = 0,
 ):
     """3-D stick-figure animation with ground plane, root trajectory and asked end point."""
-    from odmo_cli.viz import render_samples
+    from odmo_cli.formats.viz import render_samples
 
     out = out or samples.with_suffix(".gif")
     written, notice = render_samples(samples, out, index, grid, trail, size, frame, compare, data, seed)
@@ -273,7 +273,7 @@ def _plot_modes(loaded, plot: Path, projection: str, colour: str, action: Option
     import numpy as np
 
     from odmo_cli.models.latent import assign
-    from odmo_cli.viz import latent_plot
+    from odmo_cli.formats.viz import latent_plot
 
     codes, labels = loaded.bank["codes"].numpy(), loaded.bank["labels"].numpy()
     chosen = [loaded.action_index(action)] if action else list(range(len(loaded.actions)))
