@@ -15,11 +15,18 @@ from __future__ import annotations
 
 import difflib
 import math
+import sys
 import warnings
 from dataclasses import MISSING, asdict, field, fields
+from pathlib import Path
 from typing import TypeVar
 
 from odmo_cli.errors import UserError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
 
 C = TypeVar("C", bound="Config")
 
@@ -68,6 +75,19 @@ def unknown_key(key: str, valid) -> ConfigError:
     near = difflib.get_close_matches(key, valid, n=1)
     hint = f"did you mean {near[0]!r}?" if near else f"valid: {', '.join(valid)}"
     return ConfigError(repr(key), f"is not a setting; {hint}")
+
+
+def read_toml(path: str | Path, what: str) -> dict:
+    """A TOML file's tables (a recipe, a --config file); UserError naming `what` and the file if it is
+    missing, unreadable or not TOML."""
+    try:
+        return tomllib.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise UserError(f"{what} {path} does not exist") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise UserError(f"cannot read {what} {path}: {e}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise UserError(f"{what} {path} is not valid TOML: {e}") from None
 
 
 def _plain(value):

@@ -327,3 +327,24 @@ def lines_model(tmp_path_factory, lines_folder):
     out = tmp_path_factory.mktemp("model") / "lines.pt"
     train_odmo(clips, tc, out, preset="paper", overrides=overrides)
     return out
+
+
+@pytest.fixture(scope="module")
+def demo_clips():
+    """The HumanAct12 demo subset shipped in the package, read as a ClipSet."""
+    from odmo_cli.data.demo import demo_folder
+    from odmo_cli.data.locate import resolve
+    from odmo_cli.data.readers import read_dataset
+
+    manifest, root = resolve(demo_folder("humanact12"))
+    return read_dataset(root, manifest)
+
+
+def tiny_config(**kw):
+    """A small ODMOConfig (4 joints, 3 actions, 8 frames) for fast model tests; kw override it."""
+    from odmo_cli.models.odmo_config import ODMOConfig
+
+    base = dict(n_joints=4, n_classes=3, length=8, latent_dim=5, encoder_hidden=8, encoder_fc=16,
+                traj_hidden=12, motion_hidden=12)
+    base.update(kw)
+    return ODMOConfig(**base)

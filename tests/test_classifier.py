@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 import torch
 
-from odmo_cli.data.demo import demo_folder
 from odmo_cli.data.locate import resolve
 from odmo_cli.data.manifest import load_manifest
 from odmo_cli.data.readers import read_dataset
@@ -25,11 +24,6 @@ from odmo_cli.training.classifier import ClassifierTrainConfig, train_classifier
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
-
-@pytest.fixture(scope="module")
-def demo_clips():
-    manifest, root = resolve(demo_folder("humanact12"))
-    return read_dataset(root, manifest)
 
 
 def a2m_reference(state: dict, motion: torch.Tensor, layers: int) -> torch.Tensor:

@@ -8,11 +8,12 @@ The package's source (comments, docstrings, messages) names no date at all."""
 
 from __future__ import annotations
 
-import functools
 import re
 from pathlib import Path
 
 import pytest
+
+from test_architecture import heading_anchors
 
 REPO = Path(__file__).resolve().parents[1]
 REFERENCE = sorted((REPO / "docs").glob("*.md"))
@@ -70,18 +71,6 @@ def local_links(page: Path) -> list[str]:
     return [t for t in LINK.findall(FENCE.sub("", page.read_text())) if not re.match(r"^[a-z]+:", t)]
 
 
-@functools.lru_cache(maxsize=None)
-def heading_anchors(page: Path) -> frozenset[str]:
-    """GitHub's anchors of a page's headings (as in test_architecture)."""
-    anchors: set[str] = set()
-    for title in re.findall(r"^#+[ \t]+(.+?)[ \t]*$", FENCE.sub("", page.read_text()), re.M):
-        slug = re.sub(r"[^\w\- ]", "", title.lower()).replace(" ", "-")
-        n, anchor = 0, slug
-        while anchor in anchors:
-            n += 1
-            anchor = f"{slug}-{n}"
-        anchors.add(anchor)
-    return frozenset(anchors)
 
 
 @pytest.mark.parametrize("page", LAB, ids=lambda p: p.name)

@@ -10,9 +10,6 @@ from typer.testing import CliRunner
 
 from odmo_cli import checkpoint
 from odmo_cli.cli import app
-from odmo_cli.data.demo import demo_folder
-from odmo_cli.data.locate import resolve
-from odmo_cli.data.readers import read_dataset
 from odmo_cli.checkpoint import load_checkpoint
 from odmo_cli.errors import UserError
 from odmo_cli.generation import generate
@@ -26,11 +23,6 @@ ACTIONS = ("warm_up", "walk", "lift_dumbbell")
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
-
-@pytest.fixture(scope="module")
-def demo_clips():
-    manifest, root = resolve(demo_folder("humanact12"))
-    return read_dataset(root, manifest)
 
 
 def tiny_model(generator: str, **kw) -> DVGAN:

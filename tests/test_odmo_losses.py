@@ -12,14 +12,8 @@ import torch
 
 from odmo_cli.measures import diagnostics
 from odmo_cli.models import losses
-from odmo_cli.models.odmo import ODMOConfig
+from conftest import tiny_config
 
-
-def tiny_config(**kw) -> ODMOConfig:
-    base = dict(n_joints=4, n_classes=3, length=8, latent_dim=5, encoder_hidden=8, encoder_fc=16,
-                traj_hidden=12, motion_hidden=12)
-    base.update(kw)
-    return ODMOConfig(**base)
 
 
 # -- the terms and their total ----------------------------------------------------------------------

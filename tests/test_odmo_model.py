@@ -10,25 +10,12 @@ import torch
 from typer.testing import CliRunner
 
 from odmo_cli.cli import app
-from odmo_cli.data.demo import demo_folder
-from odmo_cli.data.locate import resolve
-from odmo_cli.data.readers import read_dataset
 from odmo_cli.models import losses
 from odmo_cli.models.odmo import ODMO, ODMOConfig, condition
 from odmo_cli.training.odmo import model_config_for
+from conftest import tiny_config
 
 
-@pytest.fixture(scope="module")
-def demo_clips():
-    manifest, root = resolve(demo_folder("humanact12"))
-    return read_dataset(root, manifest)
-
-
-def tiny_config(**kw) -> ODMOConfig:
-    base = dict(n_joints=4, n_classes=3, length=8, latent_dim=5, encoder_hidden=8, encoder_fc=16,
-                traj_hidden=12, motion_hidden=12)
-    base.update(kw)
-    return ODMOConfig(**base)
 
 
 # -- config and presets -----------------------------------------------------------------------------

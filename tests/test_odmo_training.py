@@ -15,26 +15,14 @@ from odmo_cli.checkpoint import load_model
 from odmo_cli.cli import app
 from odmo_cli.data.dataset import mirror, mirror_map
 from odmo_cli.data.demo import demo_folder
-from odmo_cli.data.locate import resolve
-from odmo_cli.data.readers import read_dataset
 from odmo_cli.errors import UserError
 from odmo_cli.measures import diagnostics
 from odmo_cli.models.odmo import ODMO, ODMOConfig, widen_pose_decoder
 from odmo_cli.training import odmo as odmo_training
 from odmo_cli.training.odmo import ODMOTrainer, TrainConfig, model_config_for, reconstruction_error, train_odmo
+from conftest import tiny_config
 
 
-@pytest.fixture(scope="module")
-def demo_clips():
-    manifest, root = resolve(demo_folder("humanact12"))
-    return read_dataset(root, manifest)
-
-
-def tiny_config(**kw) -> ODMOConfig:
-    base = dict(n_joints=4, n_classes=3, length=8, latent_dim=5, encoder_hidden=8, encoder_fc=16,
-                traj_hidden=12, motion_hidden=12)
-    base.update(kw)
-    return ODMOConfig(**base)
 
 
 # -- training ---------------------------------------------------------------------------------------

@@ -17,20 +17,14 @@ from __future__ import annotations
 import difflib
 import functools
 import inspect
-import sys
 from dataclasses import MISSING, fields
 from pathlib import Path
 from typing import Annotated, Any, Optional, get_args, get_type_hints
 
 import typer
 
-from odmo_cli.config import PANELS, ConfigError, unknown_key
+from odmo_cli.config import PANELS, ConfigError, read_toml, unknown_key
 from odmo_cli.errors import UserError
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
 
 # what the data sets (training.loop.dataset_shapes) and what the run's own options set
 NOT_IN_FILES = ("n_joints", "n_classes", "length", "skeleton", "up_axis", "actions", "vocab", "input_size",
@@ -115,14 +109,7 @@ def with_settings(*classes):
 def read_config_file(path: Path, tables: dict[str, type]) -> dict[str, dict]:
     """{table: values} of a TOML config file, each table's keys checked against its config class
     (tables: {"model": ODMOConfig, "train": TrainConfig}); UserError naming the file for anything else."""
-    try:
-        raw = tomllib.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise UserError(f"config file {path} does not exist") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise UserError(f"cannot read config file {path}: {e}") from None
-    except tomllib.TOMLDecodeError as e:
-        raise UserError(f"config file {path} is not valid TOML: {e}") from None
+    raw = read_toml(path, "config file")
     for key in raw:
         if key not in tables:
             near = difflib.get_close_matches(key, list(tables), n=1)

@@ -20,19 +20,13 @@ with the nearest valid name.
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
-from odmo_cli.config import unknown_key
+from odmo_cli.config import read_toml, unknown_key
 from odmo_cli.errors import UserError
 from odmo_cli.models.odmo_config import ODMOConfig
 from odmo_cli.training.configs import TrainConfig
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
 
 TOP = ("dataset", "preset", "budget_hours", "model", "train", "phases")
 PHASE = ("name", "model")
@@ -105,14 +99,7 @@ def load_recipe(path: str | Path) -> Recipe:
     """The recipe in a TOML file; UserError naming the file and the problem for anything that is not
     a valid recipe (a misspelt key, a value a config refuses, a phase that changes the architecture)."""
     path = Path(path)
-    try:
-        raw = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise UserError(f"recipe {path} does not exist") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise UserError(f"cannot read recipe {path}: {e}") from None
-    except tomllib.TOMLDecodeError as e:
-        raise UserError(f"recipe {path} is not valid TOML: {e}") from None
+    raw = read_toml(path, "recipe")
     name = path.name
     _refuse_unknown(name, raw, TOP)
     model_fields = [f.name for f in fields(ODMOConfig)]
