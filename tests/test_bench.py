@@ -32,6 +32,9 @@ def test_bench_sampling_reports_median_min_max(tmp_path):
     assert asked.read_text().split() == ["1008", "1008"]  # as many motions as ours: 84 per action, 12 actions
     assert theirs["median"] == 500.0 and ratio["median"] == pytest.approx(ours["median"] / 500.0)
     assert report["machine"]["cores"] >= 1
+    # in a log (stderr not a terminal), one line per part with the time so far
+    assert [line.split(" (")[0] for line in res.stderr.splitlines()] == ["benchmarking sampling"]
+    assert res.stderr.rstrip().endswith("elapsed)")
 
 
 def test_bench_evaluation_beside_the_authors_networks(tmp_path, monkeypatch):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, Optional
@@ -91,6 +92,27 @@ def evaluate(
 
 
 @contextmanager
+def _parts_progress(quiet: bool):
+    """Yields part(name), called as each part of the benchmark starts: on a terminal, the part and the
+    time so far on stderr; in a log, one line per part with the time so far (quiet with --json)."""
+    from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+    start = time.monotonic()
+    bar = Progress(SpinnerColumn(), TextColumn("benchmarking {task.description}"), TimeElapsedColumn(),
+                   console=err_console, disable=quiet or not err_console.is_terminal)
+    task = bar.add_task("...", total=None)
+
+    def part(name: str) -> None:
+        bar.update(task, description=name)
+        if not quiet and not err_console.is_terminal:
+            spent = int(time.monotonic() - start)
+            err_console.print(f"benchmarking {name} ({spent // 60}:{spent % 60:02d} elapsed)", highlight=False)
+
+    with bar:
+        yield part
+
+
+@contextmanager
 def _sets_bar(total: int, quiet: bool):
     """Yields advance(): a bar of the generated sets with the time elapsed and left, on a terminal's
     stderr (quiet with --json); in a log, one line per set."""
@@ -174,9 +196,8 @@ def bench(
     if runs <= 0:
         raise UserError(f"--runs must be positive, got {runs}")
     dev = device_for(device)
-    with err_console.status("benchmarking ...") as status:
-        report = run_bench(model, data, runs, tuple(only or ()), lambda part: status.update(f"benchmarking {part} ..."),
-                           peer, dev)
+    with _parts_progress(as_json) as part:
+        report = run_bench(model, data, runs, tuple(only or ()), part, peer, dev)
     m = report.machine
     payload = {"machine": m, "figures": [f.to_json() for f in report.figures], "skipped": report.skipped}
     if out is not None:
