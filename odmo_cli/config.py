@@ -53,20 +53,13 @@ def knob(default=MISSING, help: str = "", panel: str = "", *, factory=MISSING):
     return field(default=default, default_factory=factory, metadata={"help": help, "panel": panel})
 
 
-def non_finite_field(config) -> tuple[str, float] | None:
-    """The first float field of a config dataclass that is nan or infinite, as (name, value), or None.
-    A config checks this before its bounds: nan passes every `x < bound` and `x > bound` check."""
+def check_finite(config) -> None:
+    """ConfigError naming the first float field of a config dataclass that is nan or infinite. A config
+    checks this before its bounds: nan passes every `x < bound` and `x > bound` check."""
     for f in fields(config):
         value = getattr(config, f.name)
         if isinstance(value, float) and not math.isfinite(value):
-            return f.name, value
-    return None
-
-
-def check_finite(config) -> None:
-    """ConfigError naming the first float field that is nan or infinite."""
-    if bad := non_finite_field(config):
-        raise ConfigError(bad[0], f"must be a finite number, got {bad[1]}")
+            raise ConfigError(f.name, f"must be a finite number, got {value}")
 
 
 def unknown_key(key: str, valid) -> ConfigError:
@@ -75,6 +68,14 @@ def unknown_key(key: str, valid) -> ConfigError:
     near = difflib.get_close_matches(key, valid, n=1)
     hint = f"did you mean {near[0]!r}?" if near else f"valid: {', '.join(valid)}"
     return ConfigError(repr(key), f"is not a setting; {hint}")
+
+
+def refuse_unknown(where: str, given, valid) -> None:
+    """UserError `where: 'key' is not a setting; ...` for the first key of `given` not in `valid` (a
+    recipe's or a config file's table)."""
+    for key in given:
+        if key not in valid:
+            raise UserError(f"{where}: {unknown_key(key, valid)}")
 
 
 def read_toml(path: str | Path, what: str) -> dict:

@@ -67,9 +67,10 @@ def test_a_config_names_the_field_it_refuses():
 @pytest.mark.parametrize("kind, cls", COMMANDS.items())
 def test_every_option_default_is_the_configs(kind, cls):
     """The options are None unless given: the library's default is the command line's."""
+    from odmo_cli.cli.settings import sources
     from odmo_cli.cli.train_commands import _train_config
 
-    assert _train_config(cls, {}, None, None, 0, 0) == cls()
+    assert _train_config(sources({}, None, {"train": cls}), cls, None, 0, 0) == cls()
     command = typer.main.get_command(app).commands["train"].commands[kind]
     options = {p.name: p for p in command.params}
     for name in knobs(cls):

@@ -23,12 +23,11 @@ from typing import Annotated, Any, Optional, get_args, get_type_hints
 
 import typer
 
-from odmo_cli.config import PANELS, ConfigError, read_toml, unknown_key
+from odmo_cli.config import PANELS, ConfigError, read_toml, refuse_unknown
 from odmo_cli.errors import UserError
+from odmo_cli.training.configs import DATA_SHAPES
 
-# what the data sets (training.loop.dataset_shapes) and what the run's own options set
-NOT_IN_FILES = ("n_joints", "n_classes", "length", "skeleton", "up_axis", "actions", "vocab", "input_size",
-                "seed", "threads")
+NOT_IN_FILES = (*DATA_SHAPES, "seed", "threads")  # what the data sets, and what the run's own options set
 
 
 def flag(name: str) -> str:
@@ -101,7 +100,6 @@ def with_settings(*classes):
         all_params = sorted(params + list(added.values()), key=_panel_rank)
         command.__signature__ = inspect.Signature(all_params)
         command.__annotations__ = {p.name: p.annotation for p in all_params}
-        command.settings_fields = tuple(added)
         return command
     return wrap
 
@@ -120,10 +118,7 @@ def read_config_file(path: Path, tables: dict[str, type]) -> dict[str, dict]:
         values = raw.get(table, {})
         if not isinstance(values, dict):
             raise UserError(f"{path}: {table} must be a table ([{table}]), got {type(values).__name__}")
-        valid = [f.name for f in fields(cls) if f.name not in NOT_IN_FILES]
-        for key in values:
-            if key not in valid:
-                raise UserError(f"{path} [{table}]: {unknown_key(key, valid)}")
+        refuse_unknown(f"{path} [{table}]", values, [k for k in cls.field_names() if k not in NOT_IN_FILES])
         out[table] = dict(values)
     return out
 
@@ -136,7 +131,7 @@ class Sources:
 
     def values(self, table: str, cls) -> dict:
         """The file's values for `table`, then the options given for cls's fields."""
-        names = {f.name for f in fields(cls)}
+        names = set(cls.field_names())
         return {**self.file_values.get(table, {}), **{k: v for k, v in self.settings.items() if k in names}}
 
     def error(self, e: ConfigError) -> UserError:

@@ -74,21 +74,15 @@ TrainConfigOpt = Annotated[Optional[Path], typer.Option(
                      "win; docs/training.md).", rich_help_panel="Run")]
 
 
-def _train_config(cls, settings: dict, config: Optional[Path], resume: Optional[Path], seed: int, threads: int):
-    """The trainer's config of a baseline or the classifier: its --config file's [train], then the options
-    given; resuming without --epochs, the checkpoint's own length."""
-    src = sources(settings, config, {"train": cls})
-    train = src.values("train", cls)
-    if "epochs" not in train and resume is not None:
-        train["epochs"] = _epochs(resume, None)
-    return src.build(cls, {**train, "seed": seed, "threads": threads})
-
-
-def _epochs(resume: Optional[Path], epochs: Optional[int]) -> Optional[int]:
-    """--epochs as given; resuming without it, the checkpoint's own length (training.loop.resume_epochs)."""
+def _train_config(src, cls, resume: Optional[Path], seed: int, threads: int):
+    """The trainer's config: the --config file's [train], then the options given; resuming without
+    --epochs, the checkpoint's own length (a default would stretch a shorter run's schedules)."""
     from odmo_cli.training.loop import resume_epochs
 
-    return resume_epochs(resume, epochs)
+    train = src.values("train", cls)
+    if "epochs" not in train and resume is not None:
+        train["epochs"] = resume_epochs(resume, None)
+    return src.build(cls, {**train, "seed": seed, "threads": threads})
 
 
 def _clips(dataset: str, data: Optional[Path]):
@@ -147,10 +141,7 @@ def train_odmo_cmd(
     overrides = {f"use_{a.replace('end-point', 'end_point')}": False for a in ablate or []}
     overrides.update(src.values("model", ODMOConfig))
     src.build(ODMOConfig, {"skeleton": next(iter(SKELETONS)), **overrides})  # the values alone; the data's shapes come later
-    train = src.values("train", TrainConfig)
-    if "epochs" not in train and resume is not None:
-        train["epochs"] = _epochs(resume, None)
-    tc = src.build(TrainConfig, {**train, "seed": seed, "threads": threads})
+    tc = _train_config(src, TrainConfig, resume, seed, threads)
     prints = _start(device, nproc)  # after the options' own checks, before any data is read
     clips = _clips(dataset or "humanact12", data)
     with (_epoch_bar(tc.epochs, as_json or not prints) as update, _interruptible(_out(out, "odmo"), prints, odmo=True),
@@ -210,7 +201,7 @@ def train_classifier_cmd(
     from odmo_cli.training.classifier import train_classifier
 
     out = _out(out, "classifier")
-    tc = _train_config(ClassifierTrainConfig, settings, config, resume, seed, threads)
+    tc = _train_config(sources(settings, config, {"train": ClassifierTrainConfig}), ClassifierTrainConfig, resume, seed, threads)
     prints = _start(device, nproc)  # after the options' own checks, before any data is read
     clips = _clips(dataset, data)
 
@@ -268,7 +259,7 @@ def train_a2m_cmd(
     out = _out(out, "a2m")
     if representation is not None and representation not in REPRESENTATIONS:
         raise UserError(f"unknown representation {representation!r}; valid: {', '.join(REPRESENTATIONS)}")
-    tc = _train_config(A2MTrainConfig, settings, config, resume, seed, threads)
+    tc = _train_config(sources(settings, config, {"train": A2MTrainConfig}), A2MTrainConfig, resume, seed, threads)
     prints = _start(device, nproc)  # after the options' own checks, before any data is read
     clips = _clips(dataset, data)
     with _epoch_bar(tc.epochs, as_json or not prints) as update, _interruptible(out, prints):
@@ -300,7 +291,7 @@ def train_dvgan_cmd(
     out = _out(out, "dvgan")
     if generator not in GENERATORS:
         raise UserError(f"unknown DVGAN generator {generator!r}; valid: {', '.join(GENERATORS)}")
-    tc = _train_config(DVGANTrainConfig, settings, config, resume, seed, threads)
+    tc = _train_config(sources(settings, config, {"train": DVGANTrainConfig}), DVGANTrainConfig, resume, seed, threads)
     prints = _start(device, nproc)  # after the options' own checks, before any data is read
     clips = _clips(dataset, data)
 

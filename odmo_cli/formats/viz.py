@@ -228,26 +228,24 @@ def real_examples(dataset: str | None, skeleton: Skeleton, actions: Sequence[str
     return np.stack(out)
 
 
-def _size(text: str) -> tuple[int, int]:
+def _pair(text: str, expected: str) -> tuple[int, int]:
+    """'AxB' -> (A, B), both positive integers; UserError `expected` (naming the option and its form)."""
     parts = text.lower().split("x")
     try:
-        w, h = (int(p) for p in parts)
+        a, b = (int(p) for p in parts)
     except ValueError:
-        w = h = 0
-    if len(parts) != 2 or w <= 0 or h <= 0:
-        raise UserError(f"--size must be WIDTHxHEIGHT in pixels, e.g. 640x480; got {text!r}")
-    return w, h
+        a = b = 0
+    if len(parts) != 2 or a <= 0 or b <= 0:
+        raise UserError(f"{expected}; got {text!r}")
+    return a, b
+
+
+def _size(text: str) -> tuple[int, int]:
+    return _pair(text, "--size must be WIDTHxHEIGHT in pixels, e.g. 640x480")
 
 
 def _grid(text: str) -> tuple[int, int]:
-    parts = text.lower().split("x")
-    try:
-        rows, cols = (int(p) for p in parts)
-    except ValueError:
-        rows = cols = 0
-    if len(parts) != 2 or rows <= 0 or cols <= 0:
-        raise UserError(f"--grid must be ROWSxCOLS with positive numbers, e.g. 4x5; got {text!r}")
-    return rows, cols
+    return _pair(text, "--grid must be ROWSxCOLS with positive numbers, e.g. 4x5")
 
 
 def latent_plot(codes: np.ndarray, colours: np.ndarray, names: Sequence[str], out: str | Path,

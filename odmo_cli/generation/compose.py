@@ -58,10 +58,11 @@ from odmo_cli.device import model_device
 from odmo_cli.errors import UserError
 from odmo_cli.formats.samples import write_samples
 from odmo_cli.generation.generate import _end_points
-from odmo_cli.generation.seam import fade, fade_length, ground_axes, heading, settle_feet, splice_path, turn, wrap
+from odmo_cli.generation.seam import fade, fade_length, heading, leg_length, settle_feet, splice_path, turn, wrap
 from odmo_cli.geometry.kinematics import bone_lengths
 from odmo_cli.geometry.lie import rigid_bones, torso_branches
-from odmo_cli.geometry.skeletons import get_skeleton
+from odmo_cli.geometry.skeletons import get_skeleton, ground_axes
+from odmo_cli.models.latent import codes_of, mode_ids
 from odmo_cli.models.odmo import condition, read_out
 
 METHODS = ("primed", "paste")
@@ -310,9 +311,7 @@ class _Windows:
         cfg = self.cfg
         frames = cfg.blend
         if cfg.fade_speed and self.sk.legs:
-            hip, knee, ankle, _ = self.sk.legs[0]
-            leg = (torch.linalg.vector_norm(primer[:, -1, hip] - primer[:, -1, knee], dim=-1)
-                   + torch.linalg.vector_norm(primer[:, -1, knee] - primer[:, -1, ankle], dim=-1))  # (K,)
+            leg = leg_length(primer[:, -1], self.sk.legs[0])  # (K,)
             frames = fade_length(offset, cfg.blend, cfg.longest, cfg.fade_speed * leg / self.fps)  # (K,)
         new = fade(motion[:, k:k + m], offset, frames)
         if self.rigid:  # the fade moves a bone's two ends by different offsets: back to the body's lengths
@@ -361,14 +360,6 @@ class _Windows:
 
 # -- a composition ----------------------------------------------------------------------------------
 
-def _codes(loaded: LoadedODMO, action: int, ids: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """One code per mode id (K,) from the action's mixture -> (K, D) float32."""
-    modes = loaded.action_modes(action)
-    eps = rng.standard_normal((len(ids), modes.means.shape[1]))
-    chol = np.linalg.cholesky(modes.covariances)  # (M, D, D)
-    return (modes.means[ids] + np.einsum("nij,nj->ni", chol[ids], eps)).astype(np.float32)
-
-
 def _tail(pieces: list[torch.Tensor], k: int) -> torch.Tensor | None:
     """The last k frames (K, k, J, 3) of the pieces (K, L_i, J, 3) joined (fewer if there are fewer)."""
     if not pieces:
@@ -380,13 +371,6 @@ def _tail(pieces: list[torch.Tensor], k: int) -> torch.Tensor | None:
         if have >= k:
             break
     return torch.cat(last, dim=1)
-
-
-def _modes(loaded: LoadedODMO, seg: Planned, n: int, rng: np.random.Generator) -> np.ndarray:
-    modes = loaded.action_modes(seg.action)
-    if seg.mode is not None:
-        return np.full(n, seg.mode, dtype=np.int64)
-    return rng.choice(len(modes.means), size=n, p=modes.weights).astype(np.int64)
 
 
 def _segment(win: _Windows, loaded: LoadedODMO, seg: Planned, ids: np.ndarray, rng: np.random.Generator,
@@ -404,7 +388,7 @@ def _segment(win: _Windows, loaded: LoadedODMO, seg: Planned, ids: np.ndarray, r
             here = prev[:, -1, 0] if prev is not None else torch.zeros(n, 3, device=dev)
             target = here + (end - here) * (m / left)
             target[:, win.up] = float("nan")
-        z = _codes(loaded, seg.action, ids, rng)  # (K, D)
+        z = codes_of(loaded.action_modes(seg.action), ids, rng)  # (K, D)
         ends = _end_points(loaded, seg.action, z, None)  # (K, 3)
         z, ends = torch.from_numpy(z).to(dev), torch.from_numpy(ends).to(dev)
         lab = torch.full((n,), seg.action, dtype=torch.long, device=dev)
@@ -454,7 +438,7 @@ def compose(loaded: LoadedODMO, spec: str | list[Segment], n: int = 1, seed: int
     prefix = len(start) if start is not None else 0
     bounds, seg_modes = [], []
     for seg in planned:
-        ids = _modes(loaded, seg, n, rng)
+        ids = mode_ids(loaded.action_modes(seg.action), n, rng, seg.mode).astype(np.int64)
         seg_modes.append(ids)
         first = sum(p.shape[1] for p in pieces)
         _segment(win, loaded, seg, ids, rng, pieces, yaws)

@@ -13,11 +13,14 @@ import math
 import torch
 
 from odmo_cli.geometry.lie import root_frame_joints
-from odmo_cli.geometry.skeletons import Skeleton
+from odmo_cli.geometry.skeletons import Skeleton, ground_axes
 
 
-def ground_axes(up: int) -> tuple[int, int]:
-    return tuple(i for i in range(3) if i != up)  # type: ignore[return-value]
+def leg_length(poses: torch.Tensor, leg: tuple[int, ...]) -> torch.Tensor:
+    """|hip - knee| + |knee - ankle| of poses (..., J, 3) for a leg (hip, knee, ankle, ...) -> (...)."""
+    hip, knee, ankle = leg[:3]
+    return (torch.linalg.vector_norm(poses[..., hip, :] - poses[..., knee, :], dim=-1)
+            + torch.linalg.vector_norm(poses[..., knee, :] - poses[..., ankle, :], dim=-1))
 
 
 def across_joints(skeleton: Skeleton) -> tuple[list[int], list[int]]:
@@ -37,7 +40,7 @@ def heading(poses: torch.Tensor, skeleton: Skeleton) -> torch.Tensor:
     (..., J, 3) -> (...,) radians. Its difference between two poses is the turn between them."""
     lefts, rights = across_joints(skeleton)
     across = (poses[..., lefts, :] - poses[..., rights, :]).sum(-2)  # (..., 3)
-    a, b = ground_axes(skeleton.up_index)
+    a, b = skeleton.ground_axes
     return torch.atan2(across[..., b], across[..., a])
 
 
@@ -129,11 +132,10 @@ def settle_feet(faded: torch.Tensor, new: torch.Tensor, offset: torch.Tensor, sk
     if not skeleton.legs:
         return faded
     out = faded.clone()
-    g = list(ground_axes(skeleton.up_index))
+    g = list(skeleton.ground_axes)
     t = torch.arange(1, new.shape[1] + 1, dtype=new.dtype, device=new.device)  # (m,)
     for hip, knee, ankle, toe in skeleton.legs:
-        leg = (torch.linalg.vector_norm(new[:, :, hip] - new[:, :, knee], dim=-1)
-               + torch.linalg.vector_norm(new[:, :, knee] - new[:, :, ankle], dim=-1)).median(dim=1).values  # (K,)
+        leg = leg_length(new, (hip, knee, ankle)).median(dim=1).values  # (K,)
         shift = offset[:, ankle, g]  # (K, 2)
         step = 0.5 * SLIDE_SPEED * leg / fps  # (K,) the ankle's slide per frame
         frames = (torch.linalg.vector_norm(shift, dim=-1) / step).ceil().clamp(1, longest)  # (K,)

@@ -64,7 +64,12 @@ class Skeleton:
     @property
     def ground_axes(self) -> tuple[int, int]:
         """The two axes spanning the ground plane (end points are given in these)."""
-        return tuple(i for i in range(3) if i != self.up_index)  # type: ignore[return-value]
+        return ground_axes(self.up_index)
+
+
+def ground_axes(up: int) -> tuple[int, int]:
+    """The two axes spanning the ground plane of a frame whose vertical axis is `up`, in order."""
+    return tuple(i for i in range(3) if i != up)  # type: ignore[return-value]
 
 
 _SMPL_NAMES = (

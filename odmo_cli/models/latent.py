@@ -184,16 +184,24 @@ def sample_codes(modes: ActionModes, n: int, rng: np.random.Generator, mode: int
                  weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """n codes (n, D) and their component ids (n,): from one component, from given weights, or
     mode-preserving (components drawn in proportion to their member counts)."""
-    k = len(modes.means)
+    ids = mode_ids(modes, n, rng, mode, weights)
+    return codes_of(modes, ids, rng), ids
+
+
+def mode_ids(modes: ActionModes, n: int, rng: np.random.Generator, mode: int | None = None,
+             weights: np.ndarray | None = None) -> np.ndarray:
+    """n component ids (n,): all `mode`, else drawn with `weights` (default: the mixture's own)."""
     if mode is not None:
-        ids = np.full(n, mode, dtype=np.int64)
-    else:
-        p = modes.weights if weights is None else np.asarray(weights, dtype=np.float64) / np.sum(weights)
-        ids = rng.choice(k, size=n, p=p)
-    eps = rng.standard_normal((n, modes.means.shape[1]))
+        return np.full(n, mode, dtype=np.int64)
+    p = modes.weights if weights is None else np.asarray(weights, dtype=np.float64) / np.sum(weights)
+    return rng.choice(len(modes.means), size=n, p=p)
+
+
+def codes_of(modes: ActionModes, ids: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """One code (n, D) float32 drawn from each given component (ids (n,))."""
+    eps = rng.standard_normal((len(ids), modes.means.shape[1]))
     chol = np.linalg.cholesky(modes.covariances)  # (K, D, D)
-    codes = modes.means[ids] + np.einsum("nij,nj->ni", chol[ids], eps)
-    return codes.astype(np.float32), ids
+    return (modes.means[ids] + np.einsum("nij,nj->ni", chol[ids], eps)).astype(np.float32)
 
 
 def knn_end_points(bank_codes: np.ndarray, bank_ends: np.ndarray, codes: np.ndarray, k: int = 1) -> np.ndarray:

@@ -25,7 +25,7 @@ from odmo_cli.training.loop import Progress, Trainer, TrainResult, dataset_shape
 
 
 def a2m_config_for(clips: ClipSet, representation: str = "lie", overrides: dict | None = None) -> A2MConfig:
-    return A2MConfig.from_dict({**A2MConfig.pick(dataset_shapes(clips)), "representation": representation, **(overrides or {})})
+    return A2MConfig.from_dict({**dataset_shapes(clips, A2MConfig), "representation": representation, **(overrides or {})})
 
 
 def bone_bank(clips: ClipSet, idx: np.ndarray, k: int, seed: int) -> torch.Tensor:

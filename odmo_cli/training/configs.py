@@ -12,6 +12,11 @@ from dataclasses import dataclass
 from odmo_cli.config import Config, ConfigError, check_finite, knob
 
 
+# what the data sets in a model config (training.loop.dataset_shapes; DVGAN's vocabulary from its actions,
+# the classifier's input size from the joints), never a user, a recipe or a config file
+DATA_SHAPES = ("n_joints", "n_classes", "length", "skeleton", "up_axis", "actions", "vocab", "input_size")
+
+
 @dataclass
 class LoopConfig(Config):
     """What every trainer's config has; each model's config subclasses it with its own defaults."""

@@ -31,7 +31,7 @@ from odmo_cli.training.loop import Progress, Trainer, TrainResult, dataset_shape
 
 
 def model_config_for(clips: ClipSet, generator: str = "cnn", overrides: dict | None = None) -> DVGANConfig:
-    return DVGANConfig.from_dict({**DVGANConfig.pick(dataset_shapes(clips)), "generator": generator, **(overrides or {})})
+    return DVGANConfig.from_dict({**dataset_shapes(clips, DVGANConfig), "generator": generator, **(overrides or {})})
 
 
 class DVGANTrainer(Trainer):

@@ -57,12 +57,13 @@ from odmo_cli.training.distributed import Group, peer_lost
 Progress = Callable[[dict], None]  # called after every epoch with that epoch's log (a dict)
 
 
-def dataset_shapes(clips: ClipSet) -> dict:
-    """What a model config takes from the dataset (each config's from_dict keeps the fields it has):
-    joints, classes, clip length T, skeleton name, action names and the up axis's index."""
+def dataset_shapes(clips: ClipSet, config_class: type[Config]) -> dict:
+    """What a model config of `config_class` takes from the dataset, of joints, classes, clip length T,
+    skeleton name, action names and the up axis's index: the ones the class has."""
     m = clips.manifest
-    return dict(n_joints=m.skeleton.n_joints, n_classes=len(m.actions), length=m.clip_length,
-                skeleton=m.skeleton_name, actions=list(m.action_names), up_axis=m.skeleton.up_index)
+    return config_class.pick(dict(n_joints=m.skeleton.n_joints, n_classes=len(m.actions), length=m.clip_length,
+                                  skeleton=m.skeleton_name, actions=list(m.action_names),
+                                  up_axis=m.skeleton.up_index))
 
 
 def resume_epochs(path: str | Path | None, epochs: int | None) -> int | None:

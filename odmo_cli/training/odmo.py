@@ -35,7 +35,7 @@ from odmo_cli.training.loop import Progress, Trainer, TrainResult, dataset_shape
 def model_config_for(clips: ClipSet, overrides: dict | None = None, preset: str = "odmo") -> ODMOConfig:
     """ODMOConfig for the clips' dataset: its shapes, the preset's loss scales (models.odmo.PRESETS),
     then `overrides`."""
-    return ODMOConfig.from_dict({**ODMOConfig.pick(dataset_shapes(clips)), **preset_values(preset, clips.manifest.name),
+    return ODMOConfig.from_dict({**dataset_shapes(clips, ODMOConfig), **preset_values(preset, clips.manifest.name),
                                  **(overrides or {})})
 
 

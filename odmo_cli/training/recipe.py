@@ -23,10 +23,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
-from odmo_cli.config import read_toml, unknown_key
+from odmo_cli.config import read_toml, refuse_unknown
 from odmo_cli.errors import UserError
 from odmo_cli.models.odmo_config import ODMOConfig
-from odmo_cli.training.configs import TrainConfig
+from odmo_cli.training.configs import DATA_SHAPES, TrainConfig  # DATA_SHAPES: a recipe serves any dataset
 
 TOP = ("dataset", "preset", "budget_hours", "model", "train", "phases")
 PHASE = ("name", "model")
@@ -34,8 +34,6 @@ PHASE = ("name", "model")
 PHASE_MODEL = ("alpha", "sigma2", "same_class_deadzone", "recon_weight", "use_es", "use_traj", "use_cons",
                "up_weight", "traj_loss", "vel_weight", "energy_weight", "free_energy_weight", "height_weight",
                "mix_energy_weight", "root", "pose_loss", "bones", "foot_weight", "foot_axes", "bone_weight", "cons")
-# what the data sets (training.loop.dataset_shapes): a recipe serves any dataset
-DATA_SHAPES = ("n_joints", "n_classes", "length", "skeleton", "up_axis")
 # the split is the run's: a phase on another split would validate on clips it trained on
 RUN_ONLY = ("val_fraction", "split_seed", "seed", "threads")
 
@@ -83,12 +81,6 @@ class Recipe:
                    [Phase(p["name"], p["train"], p["model"]) for p in d["phases"]], d.get("budget_hours"))
 
 
-def _refuse_unknown(where: str, given: dict, valid) -> None:
-    for key in given:
-        if key not in valid:
-            raise UserError(f"{where}: {unknown_key(key, valid)}")
-
-
 def _table(where: str, value) -> dict:
     if not isinstance(value, dict):
         raise UserError(f"{where} must be a table, got {type(value).__name__}")
@@ -101,12 +93,12 @@ def load_recipe(path: str | Path) -> Recipe:
     path = Path(path)
     raw = read_toml(path, "recipe")
     name = path.name
-    _refuse_unknown(name, raw, TOP)
+    refuse_unknown(name, raw, TOP)
     model_fields = [f.name for f in fields(ODMOConfig)]
     train_fields = [f.name for f in fields(TrainConfig)]
     model, train = _table(f"{name} [model]", raw.get("model", {})), _table(f"{name} [train]", raw.get("train", {}))
-    _refuse_unknown(f"{name} [model]", model, [k for k in model_fields if k not in DATA_SHAPES])
-    _refuse_unknown(f"{name} [train]", train, [k for k in train_fields if k not in ("seed", "epochs")])
+    refuse_unknown(f"{name} [model]", model, [k for k in model_fields if k not in DATA_SHAPES])
+    refuse_unknown(f"{name} [train]", train, [k for k in train_fields if k not in ("seed", "epochs")])
     phases = []
     raw_phases = raw.get("phases")
     if not isinstance(raw_phases, list) or not raw_phases:
@@ -114,11 +106,11 @@ def load_recipe(path: str | Path) -> Recipe:
     for i, p in enumerate(raw_phases):
         where = f"{name} phase {i + 1}"
         p = _table(where, p)
-        _refuse_unknown(where, p, [*PHASE, *(k for k in train_fields if k not in RUN_ONLY)])
+        refuse_unknown(where, p, [*PHASE, *(k for k in train_fields if k not in RUN_ONLY)])
         if "epochs" not in p:
             raise UserError(f"{where}: give its epochs")
         pm = _table(f"{where} [phases.model]", p.get("model", {}))
-        _refuse_unknown(f"{where} [phases.model]", pm, PHASE_MODEL)
+        refuse_unknown(f"{where} [phases.model]", pm, PHASE_MODEL)
         phases.append(Phase(str(p.get("name", f"phase {i + 1}")), {k: v for k, v in p.items() if k not in PHASE}, pm))
     from odmo_cli.models.odmo import PRESETS
 
