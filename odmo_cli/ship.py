@@ -101,16 +101,24 @@ def total_epochs(name: str) -> int:
     return sum(RECIPES[name][k]["epochs"] for k in _stages(RECIPES[name]))
 
 
+def classifier_epochs(name: str) -> int:
+    """The classifier's epochs in a dataset's recipe."""
+    return RECIPES[name]["classifier"]["epochs"]
+
+
 def build(dataset: str, data, out_dir: Path, seed: int = 0, skip_classifier: bool = False,
-          progress: Callable | None = None, say: Callable[[str], None] = print, recipe_file: Path | None = None) -> dict:
+          progress: Callable | None = None, say: Callable[[str], None] = print, recipe_file: Path | None = None,
+          classifier_progress: Callable | None = None) -> dict:
     """Train and write the shipped files for `dataset` into out_dir; returns both training reports
-    (ODMO's: its last stage's). `progress` counts ODMO's epochs over all stages. `recipe_file`: ODMO is
-    trained in one run of that recipe file's phases (training.recipe) instead of the stages below."""
+    (ODMO's: its last stage's). `progress` counts ODMO's epochs over all stages, `classifier_progress`
+    the classifier's (each gets every epoch's log). `recipe_file`: ODMO is trained in one run of that
+    recipe file's phases (training.recipe) instead of the stages below."""
     name = recipe_name(dataset)
     manifest, root = resolve(name, data)
     out_dir = Path(out_dir)
-    if not out_dir.is_dir():
-        raise UserError(f"output folder {out_dir} does not exist")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise UserError(f"--out {out_dir} is a file; give a folder (it is made if missing)")
+    out_dir.mkdir(parents=True, exist_ok=True)
     recipe, files = RECIPES[name], SHIPPED[name]
     clips = read_dataset(root, manifest)
     reports = {}
@@ -118,7 +126,8 @@ def build(dataset: str, data, out_dir: Path, seed: int = 0, skip_classifier: boo
         say(f"training the {manifest.name} classifier ({recipe['classifier']['epochs']} epochs)")
         tc = ClassifierTrainConfig.from_dict({**recipe["classifier"], "seed": seed})
         work = out_dir / (Path(files["classifier"]).stem + ".training.pt")
-        reports["classifier"] = train_classifier(clips, tc, work, resume=work if work.is_file() else None).report
+        reports["classifier"] = train_classifier(clips, tc, work, resume=work if work.is_file() else None,
+                                                 progress=classifier_progress).report
         save_checkpoint(out_dir / files["classifier"], compact_classifier(load_checkpoint(work)))
         work.unlink()
     if recipe_file is not None:

@@ -86,11 +86,15 @@ def test_build_writes_both_files_deterministically(lines_folder, tmp_path, monke
     monkeypatch.setitem(checkpoint.SHIPPED, str(lines_folder),
                         {"short": "lines", "odmo": "odmo_lines.pt", "classifier": "classifier_lines.pt"})
     weights = []
-    for run in ("a", "b"):
+    for run in ("a", "b/new"):  # the second folder is made by build
         out = tmp_path / run
-        out.mkdir()
-        reports = ship.build(str(lines_folder), None, out, seed=3, say=lambda m: None)
+        if run == "a":
+            out.mkdir()
+        logs = {"odmo": [], "classifier": []}
+        reports = ship.build(str(lines_folder), None, out, seed=3, say=lambda m: None, progress=logs["odmo"].append,
+                             classifier_progress=logs["classifier"].append)
         assert sorted(p.name for p in out.iterdir()) == ["classifier_lines.pt", "odmo_lines.pt"]
+        assert [log["epoch"] for log in logs["classifier"]] == [1, 2] and len(logs["odmo"]) == 5  # 3 + 2 stages
         assert reports["odmo"]["epochs"] == 2 and "val_accuracy" in reports["classifier"]
         clf = torch.load(out / "classifier_lines.pt", weights_only=True)  # what --held-out and eval need, no optimizer
         assert {"split", "report", "state_dict"} <= set(clf) and {"optimizer", "rng"}.isdisjoint(clf)
@@ -103,6 +107,16 @@ def test_build_writes_both_files_deterministically(lines_folder, tmp_path, monke
         weights.append(ckpt["state_dict"])
         assert len(sample(load_model(out / "odmo_lines.pt"), ["all"], 2, seed=0)) > 0
     assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
+
+
+def test_build_refuses_a_file_as_its_folder(lines_folder, tmp_path, monkeypatch):
+    monkeypatch.setitem(ship.RECIPES, str(lines_folder), {"odmo": {"epochs": 1}, "classifier": {"epochs": 1}})
+    monkeypatch.setitem(checkpoint.SHIPPED, str(lines_folder),
+                        {"short": "lines", "odmo": "odmo_lines.pt", "classifier": "classifier_lines.pt"})
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(UserError, match="--out .*f is a file; give a folder"):
+        ship.build(str(lines_folder), None, tmp_path / "f", say=lambda m: None)
+    assert (tmp_path / "f").read_text() == "x"
 
 
 def lines_model_stage(lines_model) -> dict:

@@ -333,12 +333,13 @@ def _interruptible(kept: str | Path, prints: bool = True, odmo: bool = False):
 
 
 @contextmanager
-def _epoch_bar(total: int, quiet: bool):
-    """Yields update(epoch, info, line): a rich bar on a terminal; in a log file, one line per `line`."""
+def _epoch_bar(total: int, quiet: bool, label: str = "epoch"):
+    """Yields update(epoch, info, line): a rich bar on a terminal; in a log file, one line per epoch.
+    update.stop() ends the bar early (before another one starts)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     # the bar starts with the first finished epoch, so an early error prints only its one line
-    bar = Progress(TextColumn("epoch"), MofNCompleteColumn(), BarColumn(), TimeElapsedColumn(), TextColumn("<"),
+    bar = Progress(TextColumn(label), MofNCompleteColumn(), BarColumn(), TimeElapsedColumn(), TextColumn("<"),
                    TimeRemainingColumn(), TextColumn("{task.fields[info]}"), console=err_console, disable=quiet)
     task = bar.add_task("train", total=total, info="")
     start = time.monotonic()
@@ -350,17 +351,21 @@ def _epoch_bar(total: int, quiet: bool):
                 first[0] = epoch - 1 if first[0] is None else first[0]
                 spent = time.monotonic() - start
                 left = spent / max(epoch - first[0], 1) * (total - epoch)
-                err_console.print(f"epoch {epoch}/{total} ({_clock(spent)} elapsed, {_clock(left)} left) {info}",
+                err_console.print(f"{label} {epoch}/{total} ({_clock(spent)} elapsed, {_clock(left)} left) {info}",
                                   highlight=False)
             return
         bar.start()
         bar.update(task, completed=epoch, info=info)
 
+    def stop() -> None:
+        if bar.live.is_started:
+            bar.stop()
+
+    update.stop = stop
     try:
         yield update
     finally:
-        if bar.live.is_started:
-            bar.stop()
+        stop()
 
 
 def _clock(seconds: float) -> str:
@@ -384,7 +389,7 @@ def _log_progress(update, val_every: int):
 @app.command("ship", cls=Command)
 def ship_cmd(
     dataset: Annotated[str, typer.Argument(help="humanact12 or cmu_mocap (cmu).")],
-    out: Annotated[Path, typer.Option("--out", help="Folder for the files (odmo_<name>.pt, classifier_<name>.pt).")],
+    out: Annotated[Path, typer.Option("--out", help="Folder for the files (odmo_<name>.pt, classifier_<name>.pt); made if missing.")],
     skip_classifier: Annotated[bool, typer.Option("--skip-classifier", help="Train ODMO only.", metavar="")] = False,
     recipe: Annotated[Optional[Path], typer.Option("--recipe", help="Train ODMO in one run of this recipe file's phases (e.g. recipes/humanact12.toml) instead of the built-in stages.")] = None,
     data: DataOpt = None, seed: SeedOpt = 0, as_json: JsonOpt = False,
@@ -395,14 +400,23 @@ def ship_cmd(
     teacher forcing, the last two the pose decoder alone, widened), then compact files (float16, the
     largest layer as int8 rows). Run it again after an interruption to continue where it stopped. The
     recipes' numbers: docs/training.md."""
-    from odmo_cli.ship import build, recipe_name, total_epochs
+    from odmo_cli.ship import build, classifier_epochs, recipe_name, total_epochs
     from odmo_cli.training.recipe import load_recipe
 
     epochs = load_recipe(recipe).epochs if recipe is not None else total_epochs(recipe_name(dataset))
-    with (_epoch_bar(epochs, as_json) as update,
+    with (_epoch_bar(0 if skip_classifier else classifier_epochs(recipe_name(dataset)), as_json,
+                     "classifier epoch") as classifier_update,
+          _epoch_bar(epochs, as_json) as update,
           _interruptible("run the same command again to continue the training")):
-        reports = build(dataset, data, out, seed, skip_classifier, _log_progress(update, 10),
-                        say=lambda m: None if as_json else err_console.print(m, highlight=False), recipe_file=recipe)
+        show = _log_progress(update, 10)
+
+        def odmo_progress(log: dict) -> None:
+            classifier_update.stop()  # one live bar at a time
+            show(log)
+
+        reports = build(dataset, data, out, seed, skip_classifier, odmo_progress,
+                        say=lambda m: None if as_json else err_console.print(m, highlight=False), recipe_file=recipe,
+                        classifier_progress=_log_progress(classifier_update, 1))
     if as_json:
         return print_json(reports)
     if "classifier" in reports:
