@@ -199,35 +199,3 @@ def test_nothing_points_at_a_design_file_that_does_not_ship():
     for command in (["sample", "--help"], ["eval", "--help"], ["ship", "--help"], ["train", "odmo", "--help"]):
         res = CliRunner().invoke(app, command, env={"COLUMNS": "200"})
         assert res.exit_code == 0 and "DESIGN" not in res.stdout and ".py" not in res.stdout, command
-
-
-def readme_block(marker: str) -> list[str]:
-    """The command lines of the README code block that follows `marker`, comments cut."""
-    lines, inside, found = [], False, False
-    for line in (REPO / "README.md").read_text().splitlines():
-        if marker in line:
-            found = True
-        elif found and line.startswith("```"):
-            if inside:
-                break
-            inside = True
-        elif inside and line.strip():
-            lines.append(line.split("  #")[0].strip())
-    return lines
-
-
-def test_the_readme_main_job_runs_as_written(tmp_path, monkeypatch):
-    """Against the shipped model, in a fresh folder: exit 0 for every line of the first block."""
-    import shlex
-
-    from typer.testing import CliRunner
-
-    from odmo_cli.cli import app
-
-    monkeypatch.chdir(tmp_path)
-    commands = readme_block("<!-- readme:run -->")
-    assert len(commands) >= 4 and all(c.startswith("odmo ") for c in commands)
-    for command in commands:
-        res = CliRunner(env={"COLUMNS": "80"}).invoke(app, shlex.split(command)[1:])
-        assert res.exit_code == 0, f"{command}\n{res.output}"
-        assert all(len(line) <= 80 for line in res.stdout.splitlines()), f"{command}: wider than 80 columns"
