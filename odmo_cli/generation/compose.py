@@ -57,7 +57,7 @@ from odmo_cli.data.manifest import normalize_action
 from odmo_cli.device import model_device
 from odmo_cli.errors import UserError
 from odmo_cli.formats.samples import write_samples
-from odmo_cli.generation.generate import _end_points
+from odmo_cli.generation.generate import end_points_for
 from odmo_cli.generation.seam import fade, fade_length, heading, leg_length, settle_feet, splice_path, turn, wrap
 from odmo_cli.geometry.kinematics import bone_lengths
 from odmo_cli.geometry.lie import rigid_bones, torso_branches
@@ -268,7 +268,7 @@ class _Windows:
             k = primer.shape[1]
             target = torch.cat([primer, primer.new_zeros(len(primer), T - k, *primer.shape[2:])], dim=1)
             teacher = torch.arange(T, device=path.device) <= k  # step t is fed target[t - 1]
-        poses = self.model._poses(prepared, path, target, teacher)  # (K, T', J, 3)
+        poses = self.model.poses(prepared, path, target, teacher)  # (K, T', J, 3)
         motion = read_out(poses, path, self.free_cfg)
         if self.rigid:
             motion = rigid_bones(motion, self.sk.parents, self.lengths, branches=torso_branches(self.sk))
@@ -389,7 +389,7 @@ def _segment(win: _Windows, loaded: LoadedODMO, seg: Planned, ids: np.ndarray, r
             target = here + (end - here) * (m / left)
             target[:, win.up] = float("nan")
         z = codes_of(loaded.action_modes(seg.action), ids, rng)  # (K, D)
-        ends = _end_points(loaded, seg.action, z, None)  # (K, 3)
+        ends = end_points_for(loaded, seg.action, z, None)  # (K, 3)
         z, ends = torch.from_numpy(z).to(dev), torch.from_numpy(ends).to(dev)
         lab = torch.full((n,), seg.action, dtype=torch.long, device=dev)
         yaw = torch.zeros(n, device=dev)

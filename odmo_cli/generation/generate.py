@@ -39,7 +39,7 @@ def parse_point(text: str, up_axis: int, name: str = "--end") -> tuple[np.ndarra
     return point, axes
 
 
-def _end_points(loaded: LoadedODMO, action: int, codes: np.ndarray, fixed: np.ndarray | None) -> np.ndarray:
+def end_points_for(loaded: LoadedODMO, action: int, codes: np.ndarray, fixed: np.ndarray | None) -> np.ndarray:
     """KNN end points from the mixtures' codes of this action (loaded.mixture_bank); user-fixed
     coordinates override them."""
     bank = loaded.mixture_bank
@@ -109,7 +109,7 @@ def sample(loaded: LoadedODMO | LoadedBaseline, actions: list[str], n: int, seed
             labels.append(np.full(n, a))
             codes.append(z)
             modes.append(ids)
-            ends.append(_end_points(loaded, a, z, target))
+            ends.append(end_points_for(loaded, a, z, target))
     labels, codes, ends = np.concatenate(labels), np.concatenate(codes), np.concatenate(ends)
     motions = None if lazy else decode(loaded, codes, labels, ends)
     return MotionBatch(motions, np.array(loaded.actions)[labels], np.concatenate(modes), codes, ends,
@@ -173,7 +173,7 @@ def interpolate(loaded: LoadedODMO, action: str, steps: int = 8, from_mode: int 
     codes = (1 - w) * start + w * stop  # (steps, D)
     up = get_skeleton(loaded.dataset["skeleton"]).up_index
     fixed, axes = parse_point(end, up) if end else (None, ())
-    ends = _end_points(loaded, a, codes, fixed)
+    ends = end_points_for(loaded, a, codes, fixed)
     motions = decode(loaded, codes, np.full(steps, a), ends)
     return MotionBatch(motions, np.array([name] * steps), np.full(steps, -1), codes, ends,
                        loaded.dataset, loaded.source, seed, axes,

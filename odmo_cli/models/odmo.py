@@ -176,7 +176,7 @@ class ODMO(nn.Module):
         """Code (B, D), labels (B,), end point (B, 3) -> (trajectory (B, T, 3), motion (B, T, J, 3)),
         the motion's root as cfg.root says, its bones as cfg.bones says."""
         trajectory, prepared = self._plan(z, labels, end_point)
-        return trajectory, read_out(self._poses(prepared, trajectory, target, teacher), trajectory, self.cfg)
+        return trajectory, read_out(self.poses(prepared, trajectory, target, teacher), trajectory, self.cfg)
 
     def _plan(self, z: torch.Tensor, labels: torch.Tensor, end_point: torch.Tensor) -> tuple[torch.Tensor, tuple]:
         """The trajectory (B, T, 3) and what the pose decoder's unrolls of it share."""
@@ -185,7 +185,7 @@ class ODMO(nn.Module):
         trajectory = torch.cumsum(self.trajectory(cond, end_point), dim=1)  # r_t = sum of v, r_0 = 0
         return trajectory, self.motion.prepare(trajectory, cond)
 
-    def _poses(self, prepared: tuple, trajectory: torch.Tensor, target: torch.Tensor | None = None,
+    def poses(self, prepared: tuple, trajectory: torch.Tensor, target: torch.Tensor | None = None,
                teacher: torch.Tensor | None = None, keep: torch.Tensor | None = None) -> torch.Tensor:
         """The pose decoder's motion (B, T, J, 3) in the dataset's frame; teacher-forced from target,
         its units dropped as `keep` says (MotionGenerator.forward)."""
@@ -215,12 +215,12 @@ class ODMO(nn.Module):
         z = mu + eps * torch.exp(0.5 * logvar)
         trajectory, prepared = self._plan(z, labels, motion[:, -1, 0])
         out = {"mu": mu, "logvar": logvar, "z": z, "trajectory": trajectory,
-               "motion": self._poses(prepared, trajectory, motion, teacher, keep)}
+               "motion": self.poses(prepared, trajectory, motion, teacher, keep)}
         if free:  # the same trajectory, decoded again without teacher forcing
             forced = teacher is not None and bool(teacher.any())
             # with no step forced the first decode is already the free-running one: the same
             # values and gradients, at half the cost of decoding it twice
-            out["free_motion"] = self._poses(prepared, trajectory, keep=keep) if forced else out["motion"]
+            out["free_motion"] = self.poses(prepared, trajectory, keep=keep) if forced else out["motion"]
         if mix is not None:
             half = len(motion) // 2
             rows = torch.nonzero(labels[:half] == labels[half:2 * half]).flatten()
@@ -230,7 +230,7 @@ class ODMO(nn.Module):
             zm = w * z[rows] + (1 - w) * z[half + rows]
             end = w * motion[rows, -1, 0] + (1 - w) * motion[half + rows, -1, 0]
             mix_traj, mix_prepared = self._plan(zm, labels[rows], end)
-            out.update(mix_motion=self._poses(mix_prepared, mix_traj), mix_rows=rows, mix_lam=mix)
+            out.update(mix_motion=self.poses(mix_prepared, mix_traj), mix_rows=rows, mix_lam=mix)
         return out
 
 
