@@ -7,6 +7,7 @@ They run on the shipped models and the shipped demo clips (no data folder needed
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -52,6 +53,16 @@ def test_the_spec_is_read_segment_by_segment():
     assert [s.seconds for s in segs] == [4.0, None, 2.5, None, None]
     assert [s.frames for s in segs] == [None, None, None, 80, None]
     assert [s.end for s in segs] == [None, None, (1.5, -0.5), None, (0.5, 2.0)]
+
+
+@pytest.mark.parametrize("kw, message", [({"method": "glue"}, "method must be one of primed, paste; got 'glue'"),
+                                        ({"prime": 1}, "prime must be at least 2; got 1"),
+                                        ({"blend": 8, "longest": 6}, "longest must be at least 8; got 6")])
+def test_compose_config_names_the_setting_it_refuses(kw, message):
+    from odmo_cli.config import ConfigError
+
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        ComposeConfig(**kw)
 
 
 @pytest.mark.parametrize("spec", ["", "walk 4s; sit", "walk 4x", "walk, , sit", "walk 0s", "walk 2.5f", "#1 walk",
@@ -210,7 +221,7 @@ def without_end_points(tmp_path_factory) -> Path:
     (["walk#9"], "mode 9 in segment 1, 'walk#9' is out of range: walk has"),
     (["walk to 1,0", "--model", "NOEND"], "segment 1, 'walk to 1,0' asks for an end point, but no_end.pt was "
                                            "trained without end-point conditioning"),
-    (["walk", "--method", "glue"], "unknown --method 'glue'; valid: primed, paste"),
+    (["walk", "--method", "glue"], "--method must be one of primed, paste; got 'glue'"),
     (["walk", "--start-from", "missing.npz"], "--start-from: file not found"),
     (["walk", "--start-from", "START_TXT"], "--start-from must be a samples .npz, a (frames, joints, 3) .npy or a .bvh"),
     (["walk", "--start-from", "CMU_NPY"], "the motion to start from must be (frames, 24, 3)"),

@@ -53,6 +53,7 @@ import torch
 import torch.nn.functional as F
 
 from odmo_cli.checkpoint import LoadedODMO, model_name
+from odmo_cli.config import ConfigError
 from odmo_cli.data.manifest import normalize_action
 from odmo_cli.device import model_device
 from odmo_cli.errors import UserError
@@ -106,11 +107,10 @@ class ComposeConfig:
 
     def __post_init__(self):
         if self.method not in METHODS:
-            raise UserError(f"unknown --method {self.method!r}; valid: {', '.join(METHODS)}")
-        if self.prime < 2 or self.blend < 1 or self.longest < self.blend or self.end_steps < 0 or self.fade_speed < 0:
-            raise UserError(f"prime must be at least 2 frames, blend at least 1, longest at least blend, fade_speed "
-                            f"and end_steps at least 0; got {self.prime}, {self.blend}, {self.longest}, "
-                            f"{self.fade_speed}, {self.end_steps}")
+            raise ConfigError("method", f"must be one of {', '.join(METHODS)}; got {self.method!r}")
+        for name, low in (("prime", 2), ("blend", 1), ("longest", self.blend), ("end_steps", 0), ("fade_speed", 0)):
+            if getattr(self, name) < low:
+                raise ConfigError(name, f"must be at least {low}; got {getattr(self, name)}")
 
 
 def parse_spec(text: str) -> list[Segment]:
