@@ -49,7 +49,7 @@ READY = re.compile(r"^((classifier )?epoch \d+/|evaluated set 1/|benchmarking \w
 USER_FILES = {
     "odmo data fetch NAME --to DIR": "a template: NAME is a manifest with [[files]] to download",
     "odmo data prepare my_bvh/ --format bvh --labels labels.csv --skeleton humanact12 --fps 20 --out my_data":
-        "the user's BVH folder and labels (tests/test_cli_data.py runs prepare on BVH files)",
+        "the user's BVH folder and labels (tests/test_bvh.py runs prepare on real BVH files)",
     "odmo data prepare cmu_bvh/ --format bvh --skeleton cmu20 --out cmu_from_bvh": "the CMU BVH release",
     "odmo data prepare other_bvh/ --format bvh --labels labels.csv --joint-map map.toml --unit cm --out mine":
         "the user's BVH folder, labels and joint map",
@@ -120,6 +120,7 @@ def shown(page: Path) -> list[Shown]:
                     out.append(Shown(name, start + 1, "\n".join(body), python=True))
                 block = None
         elif block == "sh" and line.startswith("odmo "):
+            assert not line.endswith("\\"), f"{name}:{i}: a command continued on the next line is not read here"
             out.append(Shown(name, i, line.split("  #")[0].strip()))
         elif block == "python":
             body.append(line)
