@@ -123,7 +123,7 @@ def build(dataset: str, data, out_dir: Path, seed: int = 0, skip_classifier: boo
     clips = read_dataset(root, manifest)
     reports = {}
     if not skip_classifier:
-        say(f"training the {manifest.name} classifier ({recipe['classifier']['epochs']} epochs)")
+        say(f"training the {manifest.name} classifier ({classifier_epochs(name)} epochs)")
         tc = ClassifierTrainConfig.from_dict({**recipe["classifier"], "seed": seed})
         work = out_dir / (Path(files["classifier"]).stem + ".training.pt")
         reports["classifier"] = train_classifier(clips, tc, work, resume=work if work.is_file() else None,

@@ -147,7 +147,7 @@ def test_every_shown_command_parses(s):
     """The command exists and its options and values parse (click's own checks, before any work)."""
     path, command, args = resolve(s.argv)
     assert path and not hasattr(command, "commands"), f"{s}: {s.text}: not a command"
-    ctx = command.make_context(" ".join(("odmo",) + s.path), list(args), resilient_parsing=False)
+    ctx = command.make_context(" ".join(("odmo",) + path), list(args), resilient_parsing=False)
     ctx.close()
 
 

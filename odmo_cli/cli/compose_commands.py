@@ -10,9 +10,7 @@ from rich.table import Table
 
 from odmo_cli.cli.common import (Command, DeviceOpt, JsonOpt, ModelOpt, OutOpt, RootOpt, SeedOpt, app, console,
                                  device_for, print_json)
-from odmo_cli.cli.settings import flag
-from odmo_cli.config import ConfigError
-from odmo_cli.errors import UserError
+from odmo_cli.cli.settings import sources
 
 SPEC_ARG = ("The segments in order, comma-separated, each ACTION #MODE DURATION to X,Z with all but the action "
             "optional, e.g. \"walk 4s, sit, drink#1 2s to 1.5,0.5\". DURATION: seconds (4s) or frames (80f), default "
@@ -40,10 +38,7 @@ def compose_cmd(
     from odmo_cli.checkpoint import load_odmo
     from odmo_cli.generation.compose import ComposeConfig, compose, parse_spec, read_start
 
-    try:
-        cfg = ComposeConfig(method=method)  # checked before any work
-    except ConfigError as e:
-        raise UserError(f"{flag(e.field)} {e.problem}") from None
+    cfg = sources({"method": method}, None, {}).build(ComposeConfig, {"method": method})  # checked before any work
     segments = parse_spec(spec)
     loaded = load_odmo(model, device_for(device), root)
     start = read_start(start_from, loaded) if start_from is not None else None
