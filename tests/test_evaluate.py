@@ -222,7 +222,7 @@ def test_held_out_needs_a_split_that_fits(lines_folder, lines_classifier, tmp_pa
         held_out_clips(load_classifier(lines_classifier), fewer)
 
 
-def test_damping_metrics_against_the_first_real_set():
+def test_damping_metrics_against_a_real_set():
     from odmo_cli.evaluation.protocol import RealSets, damping_metrics, split_by_action
 
     labels = np.array([0, 0, 1, 1])
@@ -241,6 +241,11 @@ def test_damping_metrics_against_the_first_real_set():
     still = RealSets([], labels, [], np.ones(2), [], [np.array([1.0, 1.0, 0.0, 0.0])], [np.ones(4)])
     out = damping_metrics(np.ones(4), np.ones(4), labels, still)
     assert "speed/1" not in out and out["speed"] == pytest.approx(1.0)
+    # a generated set r is read against real set r + 1, as its FID and plausibility measures are
+    two = RealSets([], labels, [], np.ones(2), [], [np.ones(4), np.full(4, 2.0)], [np.ones(4), np.full(4, 4.0)])
+    out = damping_metrics(np.ones(4), np.ones(4), labels, two, ref=1)
+    assert out["speed"] == pytest.approx(0.5) and out["amplitude"] == pytest.approx(0.25)
+    assert damping_metrics(np.ones(4), np.ones(4), labels, two)["speed"] == pytest.approx(1.0)
 
 
 # -- samples files made elsewhere: small sets, files that do not fit ------------------------------

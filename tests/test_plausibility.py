@@ -82,6 +82,40 @@ def test_kinetic_features_of_a_joint_at_constant_velocity():
     assert f.shape == (9 * J,)
 
 
+def walking_chain(T: int = 40) -> np.ndarray:
+    """chain(T) whose root bounces and travels while the foot slides, then plants, then slides again."""
+    m = chain(T)
+    t = np.arange(T) / FPS
+    m[0, :, :2, 1] += 0.05 * np.sin(2 * np.pi * t)[:, None]
+    m[0, :, :2, 0] += 1.3 * t[:, None]
+    m[0, :, 2, 0] = np.where(np.arange(T) % 12 < 6, 1.3 * t, 1.3 * (t // 0.6) * 0.6)
+    return m
+
+
+def test_padded_frames_are_left_out_as_if_the_motion_ended_there():
+    # a real crop of a 25-frame clip padded to 40 with copies of its last frame (data.dataset.crop_pad_shift)
+    clip = walking_chain(40)[:, :25]
+    padded = np.concatenate([clip, np.repeat(clip[:, -1:], 15, axis=1)], axis=1)
+    mine, alone = P.measure(padded, FRAME, PARENTS, lengths=[25]), P.measure(clip, FRAME, PARENTS)
+    for key in ("contact", "steps", "skate", "slots"):
+        assert mine[key].tolist() == alone[key].tolist(), key
+    for key in ("root_up", "root_ground", "kinetic"):
+        np.testing.assert_allclose(mine[key], alone[key], rtol=1e-12, err_msg=key)
+    # without lengths the copies count: a still body with a planted foot
+    whole = P.measure(padded, FRAME, PARENTS)
+    assert whole["contact"][0] > alone["contact"][0] and whole["root_up"][0] < alone["root_up"][0]
+    assert mine["skate"][0] > 0 and mine["root_up"][0] > 0  # the clip itself moves
+
+
+def test_a_crop_too_short_for_a_step_is_left_out_of_the_root_and_kinetic_measures():
+    m = np.concatenate([walking_chain(40), walking_chain(40)])
+    s = P.measure(m, FRAME, PARENTS, lengths=[40, 3])  # 3 frames: one smoothed frame, no step
+    assert np.isnan(s["root_up"][1]) and np.isnan(s["kinetic"][1]).all() and np.isfinite(s["kinetic"][0]).all()
+    full = P.measure(m[:1], FRAME, PARENTS)
+    out = P.compare(s, [0, 0], full, [0], P.standardizer(full["kinetic"]))
+    assert out["root_up"] == pytest.approx(1) and out["root_ground"] == pytest.approx(1)
+
+
 def test_bone_variation_is_zero_for_a_rigid_body_and_the_stretch_otherwise():
     m = np.concatenate([chain(), chain()])
     m[1, :, 2, 1] = np.linspace(0, -0.1, 40)  # the shin grows from 0.5 to 0.6
@@ -107,14 +141,28 @@ def test_coverage_and_density_known_answers():
     rng = np.random.default_rng(1)
     real = rng.standard_normal((300, 4))
     cov, den = P.coverage_density(real, real)
-    # every real point is its own generated twin; each ball holds itself and its k neighbours
-    assert cov == 1.0 and den == pytest.approx((P.COVERAGE_K + 1) / P.COVERAGE_K)
+    # every real point is its own generated twin; each ball holds itself and, strictly inside its radius,
+    # k - 1 neighbours (the k-th lies on it)
+    assert cov == 1.0 and den == pytest.approx(1.0)
     cov, den = P.coverage_density(real, np.repeat(real[:1], 300, axis=0))  # one real clip, repeated
     assert cov <= 0.05  # its own ball and those of a few neighbours: near (k + 1) / 300
     cov, den = P.coverage_density(real, rng.standard_normal((300, 4)))  # another draw of the same law
     assert cov > 0.85 and 0.7 < den < 1.3
     cov, _ = P.coverage_density(real, rng.standard_normal((300, 4)) + 10)  # somewhere else
     assert cov == 0.0
+
+
+def test_coverage_counts_repeated_real_crops_once():
+    # clips no longer than the crop give the same crop every draw: six copies of one point would be each
+    # other's nearest neighbours, a radius of 0 that no generated motion, not even the crop itself, enters
+    rng = np.random.default_rng(3)
+    distinct = rng.standard_normal((40, 4))
+    real = np.concatenate([distinct, np.repeat(distinct[:1], 6, axis=0)])
+    cov, den = P.coverage_density(real, distinct)
+    assert cov == 1.0 and den == pytest.approx(1.0)  # as for the 40 distinct points alone
+    assert P.coverage_density(real, distinct) == P.coverage_density(distinct, distinct)
+    cov, _ = P.coverage_density(real, distinct[:1])  # the repeated crop itself, once: its ball and a few
+    assert 1 / 40 <= cov <= 0.15
 
 
 def test_compare_a_real_set_with_itself():

@@ -83,17 +83,21 @@ def shipped_classifier(dataset: str) -> Path | None:
     return shipped_file(dataset, "classifier")
 
 
-def real_crops(clips: ClipSet, per_action: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """per_action random crops of random clips of every action: (C*N, T, J, 3), (C*N,)."""
+def real_crops(clips: ClipSet, per_action: int, rng: np.random.Generator
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """per_action random crops of random clips of every action: (C*N, T, J, 3), (C*N,) and (C*N,)
+    the frames of each crop that are its clip's (the rest copy its last frame)."""
     T = clips.manifest.clip_length
-    motions, labels = [], []
+    motions, labels, own = [], [], []
     for c in range(len(clips.manifest.actions)):
         idx = rng.choice(np.flatnonzero(clips.labels == c), size=per_action, replace=True)
         for i in idx:
             m = clips.motions[i]
-            motions.append(crop_pad_shift(m, T, random_start(len(m), T, rng)))
+            start = random_start(len(m), T, rng)
+            motions.append(crop_pad_shift(m, T, start))
+            own.append(min(len(m) - start, T))
         labels += [c] * per_action
-    return np.stack(motions), np.asarray(labels)
+    return np.stack(motions), np.asarray(labels), np.asarray(own)
 
 
 def held_out_clips(classifier, clips: ClipSet) -> np.ndarray:
@@ -131,13 +135,14 @@ class SetStats:
 
 
 def set_stats(motions: np.ndarray, labels: np.ndarray, classifier, parents, frame: plausibility.Frame,
-              with_apd: bool = True) -> SetStats:
-    """The statistics in float64 (metrics converts block by block); n-APD only `with_apd`."""
+              with_apd: bool = True, own: np.ndarray | None = None) -> SetStats:
+    """The statistics in float64 (metrics converts block by block); n-APD only `with_apd`. `own`: each
+    motion's frames that are its clip's, for the plausibility measures (real crops; default all)."""
     logits, feats = classifier.predict(motions)
     speed, amplitude = diagnostics.body_speed_and_amplitude(motions)
     return SetStats(logits, feats, labels, metrics.bone_length_consistency(motions, parents), speed, amplitude,
                     metrics.class_apd(motions, labels, cap=APD_CAP) if with_apd else {},
-                    plausibility.measure(motions, frame, parents))
+                    plausibility.measure(motions, frame, parents, own))
 
 
 def real_sets(clips: ClipSet, classifier, cfg: EvalConfig) -> RealSets:
@@ -147,19 +152,21 @@ def real_sets(clips: ClipSet, classifier, cfg: EvalConfig) -> RealSets:
     crops = [real_crops(clips, n, rng) for _ in range(cfg.repeats + 1)]  # drawn in order from one rng
     frame = plausibility.frame_for(clips.manifest.skeleton, clips.manifest.fps, crops[0][0])
     # n-APD compares generated sets with the first real set only
-    stats = list(parallel_map(lambda r: set_stats(*crops[r], classifier, parents, frame, with_apd=r == 0),
+    stats = list(parallel_map(lambda r: set_stats(*crops[r][:2], classifier, parents, frame, with_apd=r == 0,
+                                                  own=crops[r][2]),
                               range(len(crops)), cfg.n_workers))
     return RealSets([s.features for s in stats], crops[0][1], [s.logits for s in stats], stats[0].apd,
                     [s.bone_std for s in stats], [s.speed for s in stats], [s.amplitude for s in stats],
                     [s.plausible for s in stats], frame, plausibility.standardizer(stats[0].plausible["kinetic"]))
 
 
-def damping_metrics(speed: np.ndarray, amplitude: np.ndarray, labels: np.ndarray, real: RealSets) -> dict[str, float]:
-    """Speed and amplitude ratios against the first real set: overall (mean over actions) and
+def damping_metrics(speed: np.ndarray, amplitude: np.ndarray, labels: np.ndarray, real: RealSets,
+                    ref: int = 0) -> dict[str, float]:
+    """Speed and amplitude ratios against real set `ref`: overall (mean over actions) and
     per action ("speed/<index>", "amplitude/<index>"). An action whose real motions do not move
     about the root has no ratio (the key is absent), and with none left neither has the overall one."""
     out = {}
-    for key, values, ref in (("speed", speed, real.speed[0]), ("amplitude", amplitude, real.amplitude[0])):
+    for key, values, ref in (("speed", speed, real.speed[ref]), ("amplitude", amplitude, real.amplitude[ref])):
         ratios = {c: v for c, v in diagnostics.class_ratios(values, labels, ref, real.labels).items() if np.isfinite(v)}
         if ratios:
             out[key] = float(np.mean(list(ratios.values())))
@@ -170,7 +177,8 @@ def damping_metrics(speed: np.ndarray, amplitude: np.ndarray, labels: np.ndarray
 def set_metrics(s: SetStats, real_feats: np.ndarray, rng: np.random.Generator, real: RealSets,
                 generated: bool = True, ref: int = 0) -> dict[str, float]:
     """Every metric of one set against the real sets; `rng` draws the Diversity and Multimodality pairs.
-    The plausibility measures compare with real set `ref` (the one whose features are `real_feats`).
+    Speed, amplitude and the plausibility measures compare with real set `ref` (the one whose features
+    are `real_feats`), as FID does.
     An action with too few motions for a per-action figure leaves its key out (see not_available)."""
     pred = s.logits.argmax(axis=1)  # (N,)
     pairs = len(s.labels) >= 2  # FID and Diversity need two motions
@@ -185,7 +193,7 @@ def set_metrics(s: SetStats, real_feats: np.ndarray, rng: np.random.Generator, r
     out.update({f"accuracy/{c}": 100 * float(v) for c, v in enumerate(per_class) if np.isfinite(v)})
     out["n_apd"] = metrics.apd_ratio(s.apd, real.apd) if generated and s.apd else (1.0 if not generated else float("nan"))
     out["bone_std"] = s.bone_std
-    out.update(damping_metrics(s.speed, s.amplitude, s.labels, real))
+    out.update(damping_metrics(s.speed, s.amplitude, s.labels, real, ref))
     out.update(plausibility.compare(s.plausible, s.labels, real.plausible[ref], real.labels, real.scale))
     return out
 
@@ -260,9 +268,9 @@ def evaluate_held_out(clips: ClipSet, val: np.ndarray, classifier, real: RealSet
     n, parents = cfg.n_for(clips.manifest.name), clips.manifest.skeleton.parents
     rows = []
     for r in range(cfg.repeats):  # in order: the crops of set r + 1 are drawn after set r's metrics
-        motions, labels = real_crops(held, n, rng)  # (C*n, T, J, 3)
-        rows.append(set_metrics(set_stats(motions, labels, classifier, parents, real.frame), real.features[r + 1],
-                                rng, real, ref=r + 1))
+        motions, labels, own = real_crops(held, n, rng)  # (C*n, T, J, 3), (C*n,), (C*n,)
+        stats = set_stats(motions, labels, classifier, parents, real.frame, own=own)
+        rows.append(set_metrics(stats, real.features[r + 1], rng, real, ref=r + 1))
     return {"name": "Real, classifier's held-out clips", "metrics": summarize(rows), "per_repeat": rows,
             "clips": int(len(val))}
 

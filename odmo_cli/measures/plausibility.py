@@ -16,6 +16,11 @@ skeleton (docs/evaluation.md, "What an animator sees").
   beside pose statistics (each joint's mean and spread about the root); their Fréchet distance and the
   coverage and density of Naeem et al. (ICML 2020) in that space, z-scored by a real set.
 - Bone-length variation: how much the most-varying bone of a motion changes length.
+
+Real crops of clips shorter than the crop are padded with copies of their last frame
+(data.dataset.crop_pad_shift): a still body with planted feet that no capture recorded. The feet, root
+and kinetic measures take `lengths` (N,), each motion's own frames, and leave the copies out; a
+difference or average that reaches into them is left out too.
 """
 
 from __future__ import annotations
@@ -72,6 +77,30 @@ def _smooth(x: NDArray[np.float64], k: int = SMOOTH) -> NDArray[np.float64]:
     return sum(x[:, i:i + T] for i in range(k)) / k
 
 
+def _own_frames(lengths: ArrayLike | None, n: int, T: int) -> NDArray[np.int64]:
+    """(N,) each motion's own frames: all T without `lengths`, else lengths clipped to [0, T]."""
+    if lengths is None:
+        return np.full(n, T, dtype=np.int64)
+    own = np.asarray(lengths, dtype=np.int64)
+    if own.shape != (n,):
+        raise ValueError(f"lengths must have shape ({n},), got {own.shape}")
+    return np.clip(own, 0, T)
+
+
+def _valid(own: NDArray[np.int64], width: int, lost: int) -> NDArray[np.bool_]:
+    """(N, width): index i of a series whose entry i spans frames i .. i + lost of its motion is the
+    motion's own while i + lost < own frames."""
+    return np.arange(width)[None] + lost < own[:, None]
+
+
+def _mean(x: NDArray[np.float64], valid: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """Mean over axis 1 of x (N, T', ...) where valid (N, T'); NaN for a motion with no valid entry."""
+    w = valid.reshape(valid.shape + (1,) * (x.ndim - 2)).astype(np.float64)
+    count = w.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, (x * w).sum(axis=1) / np.maximum(count, 1), np.nan)
+
+
 def leg_length(motions: ArrayLike, hip: int, knee: int, ankle: int) -> float:
     """Median over motions and frames of |hip - knee| + |knee - ankle|: the scale of the thresholds."""
     m = _motions(motions)
@@ -82,14 +111,18 @@ def leg_length(motions: ArrayLike, hip: int, knee: int, ankle: int) -> float:
 
 # -- feet ---------------------------------------------------------------------------------------------
 
-def foot_contacts(motions: ArrayLike, frame: Frame) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+def foot_contacts(motions: ArrayLike, frame: Frame, lengths: ArrayLike | None = None
+                  ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
     """Per motion (N,) each: foot-joint frames in contact, contact steps (a joint in contact at two
     consecutive frames) and the contact steps that skate (faster than SLIDE_SPEED on the ground
-    plane). Sums rather than shares, so that sets and actions pool them (`share`)."""
+    plane), within each motion's own frames (`lengths`). Sums rather than shares, so that sets and
+    actions pool them (`share`)."""
     m = _motions(motions)
+    own = _valid(_own_frames(lengths, len(m), m.shape[1]), m.shape[1], 0)[..., None]  # (N, T, 1)
     feet = m[:, :, list(frame.feet)]  # (N, T, F, 3)
     height = frame.up_sign * feet[..., frame.up]  # (N, T, F)
-    contact = height - height.min(axis=1, keepdims=True) < CONTACT_HEIGHT * frame.leg
+    lowest = np.where(own, height, np.inf).min(axis=1, keepdims=True)
+    contact = own & (height - lowest < CONTACT_HEIGHT * frame.leg)
     step = contact[:, 1:] & contact[:, :-1]  # (N, T-1, F)
     moved = np.linalg.norm(np.diff(feet[..., frame.ground], axis=1), axis=-1)  # (N, T-1, F), per frame
     skate = step & (moved > SLIDE_SPEED * frame.leg / frame.fps)
@@ -104,39 +137,56 @@ def share(part: ArrayLike, whole: ArrayLike) -> float:
 
 # -- the root -------------------------------------------------------------------------------------------
 
-def root_speeds(motions: ArrayLike, frame: Frame) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def root_speeds(motions: ArrayLike, frame: Frame, lengths: ArrayLike | None = None
+                ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Per motion (N,), (N,): the root's vertical and horizontal speed in units per second, the root
-    mean square of its frame-to-frame change after a SMOOTH-frame moving average. A bouncing run moves
-    up and down every stride; a glide does not."""
-    root = _smooth(_motions(motions)[:, :, 0])  # (N, T', 3)
+    mean square of its frame-to-frame change after a SMOOTH-frame moving average, over each motion's own
+    frames (`lengths`; NaN for a motion too short for one step). A bouncing run moves up and down every
+    stride; a glide does not."""
+    m = _motions(motions)
+    root = _smooth(m[:, :, 0])  # (N, T', 3)
+    lost = m.shape[1] - root.shape[1]  # frames a smoothed entry reaches past its index
     step = np.diff(root, axis=1) * frame.fps  # (N, T'-1, 3)
-    vertical = np.sqrt((step[..., frame.up] ** 2).mean(axis=1))
-    horizontal = np.sqrt((step[..., frame.ground] ** 2).sum(-1).mean(axis=1))
+    valid = _valid(_own_frames(lengths, len(m), m.shape[1]), step.shape[1], lost + 1)
+    vertical = np.sqrt(_mean(step[..., frame.up] ** 2, valid))
+    horizontal = np.sqrt(_mean((step[..., frame.ground] ** 2).sum(-1), valid))
     return vertical, horizontal
 
 
 # -- kinetic features --------------------------------------------------------------------------------------
 
-def kinetic_features(motions: ArrayLike, frame: Frame) -> NDArray[np.float64]:
+def kinetic_features(motions: ArrayLike, frame: Frame, lengths: ArrayLike | None = None) -> NDArray[np.float64]:
     """(N, 9 J) per motion, after a SMOOTH-frame moving average: each joint's mean horizontal and
     vertical kinetic energy per unit mass (1/2 v^2, units^2/s^2) and mean acceleration norm
     (units/s^2), in the dataset's frame (the root's travel counts); then each joint's mean position
-    about the root and its standard deviation over time (3 + 3 values)."""
-    m = _smooth(_motions(motions))  # (N, T', J, 3)
+    about the root and its standard deviation over time (3 + 3 values). Over each motion's own frames
+    (`lengths`); a row of NaN for a motion too short for an acceleration."""
+    raw = _motions(motions)
+    own = _own_frames(lengths, len(raw), raw.shape[1])
+    m = _smooth(raw)  # (N, T', J, 3)
+    lost = raw.shape[1] - m.shape[1]
     v = np.diff(m, axis=1) * frame.fps  # (N, T'-1, J, 3)
     a = np.diff(v, axis=1) * frame.fps if v.shape[1] > 1 else np.zeros_like(v)
-    ke_h = 0.5 * (v[..., frame.ground] ** 2).sum(-1).mean(axis=1)  # (N, J)
-    ke_v = 0.5 * (v[..., frame.up] ** 2).mean(axis=1)
-    spend = np.linalg.norm(a, axis=-1).mean(axis=1)
+    v_ok, a_ok = _valid(own, v.shape[1], lost + 1), _valid(own, a.shape[1], lost + 2)
+    if v.shape[1] == 1:  # no acceleration to take: as before, zeros where the velocity is the motion's
+        a_ok = v_ok
+    ke_h = 0.5 * _mean((v[..., frame.ground] ** 2).sum(-1), v_ok)  # (N, J)
+    ke_v = 0.5 * _mean(v[..., frame.up] ** 2, v_ok)
+    spend = _mean(np.linalg.norm(a, axis=-1), a_ok)
     body = m - m[:, :, :1]
-    pose_mean, pose_std = body.mean(axis=1), body.std(axis=1)  # (N, J, 3) each
-    return np.concatenate([ke_h, ke_v, spend, pose_mean.reshape(len(m), -1), pose_std.reshape(len(m), -1)], axis=1)
+    m_ok = _valid(own, m.shape[1], lost)
+    pose_mean = _mean(body, m_ok)  # (N, J, 3)
+    pose_std = np.sqrt(_mean((body - pose_mean[:, None]) ** 2, m_ok))
+    features = np.concatenate([ke_h, ke_v, spend, pose_mean.reshape(len(m), -1), pose_std.reshape(len(m), -1)], axis=1)
+    features[~a_ok.any(axis=1)] = np.nan
+    return features
 
 
 def standardizer(reference: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Mean and standard deviation (floored) of the reference features (N, D): the z-scoring that
-    `frechet` and `coverage_density` take their features in."""
+    `frechet` and `coverage_density` take their features in; rows with NaN (motions too short) left out."""
     r = np.asarray(reference, dtype=np.float64)
+    r = r[np.isfinite(r).all(axis=1)]
     std = r.std(axis=0)
     moving = std[std > 0]
     # a feature that hardly varies in the real set (the root about itself: 0) would turn rounding into
@@ -160,16 +210,19 @@ def frechet(real: ArrayLike, generated: ArrayLike) -> float:
 
 
 def coverage_density(real: ArrayLike, generated: ArrayLike, k: int = COVERAGE_K) -> tuple[float, float]:
-    """Naeem et al. (2020): each real feature (N, D) gets the radius of its k-th nearest real neighbour.
-    Coverage: the share of real features with a generated one (M, D) inside their radius (0 when the
-    generated set sits in one place, near 1 when it spans the real one). Density: the mean number of
-    real balls each generated feature lies in, over k (near 1 for a set like the real one)."""
-    r, g = np.asarray(real, dtype=np.float64), np.asarray(generated, dtype=np.float64)
+    """Naeem et al. (2020): each distinct real feature (N, D) gets the radius of its k-th nearest real
+    neighbour. Coverage: the share of real features with a generated one (M, D) strictly inside their
+    radius (0 when the generated set sits in one place, near 1 when it spans the real one). Density: the
+    mean number of real balls each generated feature lies in, over k (near 1 for a set like the real one).
+    Repeated real features count once: real crops of clips no longer than the crop are all the same
+    crop, and copies would give each other a radius of 0, a ball nothing can enter (strict `<` as the
+    authors' prdc)."""
+    r, g = np.unique(np.asarray(real, dtype=np.float64), axis=0), np.asarray(generated, dtype=np.float64)
     if len(r) <= k or len(g) == 0:
         return float("nan"), float("nan")
     rr = _distances(r, r)
     radius = np.sort(rr, axis=1)[:, k]  # column 0 is the point itself
-    inside = _distances(r, g) <= radius[:, None]  # (N, M)
+    inside = _distances(r, g) < radius[:, None]  # (N, M)
     return float(inside.any(axis=1).mean()), float(inside.sum() / (k * len(g)))
 
 
@@ -194,15 +247,18 @@ def bone_variation(motions: ArrayLike, parents: Sequence[int]) -> NDArray[np.flo
 PER_ACTION = ("foot_skate", "foot_contact", "root_up", "root_ground", "coverage", "density")
 
 
-def measure(motions: ArrayLike, frame: Frame, parents: Sequence[int]) -> dict[str, NDArray]:
+def measure(motions: ArrayLike, frame: Frame, parents: Sequence[int], lengths: ArrayLike | None = None
+            ) -> dict[str, NDArray]:
     """Everything `compare` needs of a set of motions (N, T, J, 3), per motion, so that the motions
-    need not be kept: foot-contact counts, root speeds, kinetic features and bone variation."""
+    need not be kept: foot-contact counts, root speeds, kinetic features and bone variation, over
+    each motion's own frames (`lengths`, (N,): real crops padded past their clip's end; default all)."""
     m = _motions(motions)
-    contact, steps, skate = foot_contacts(m, frame) if frame.feet else (np.zeros(len(m), np.int64),) * 3
-    up, ground = root_speeds(m, frame)
+    own = _own_frames(lengths, len(m), m.shape[1])
+    contact, steps, skate = foot_contacts(m, frame, own) if frame.feet else (np.zeros(len(m), np.int64),) * 3
+    up, ground = root_speeds(m, frame, own)
     return {"contact": contact, "steps": steps, "skate": skate, "root_up": up, "root_ground": ground,
-            "kinetic": kinetic_features(m, frame), "bones": bone_variation(m, parents),
-            "slots": np.full(len(m), (m.shape[1]) * len(frame.feet), dtype=np.int64)}
+            "kinetic": kinetic_features(m, frame, own), "bones": bone_variation(m, parents),
+            "slots": own * len(frame.feet)}
 
 
 def compare(gen: dict, gen_labels: ArrayLike, real: dict, real_labels: ArrayLike,
@@ -214,6 +270,8 @@ def compare(gen: dict, gen_labels: ArrayLike, real: dict, real_labels: ArrayLike
     gy, ry = np.asarray(gen_labels), np.asarray(real_labels)
     mean, std = scale
     gz, rz = (gen["kinetic"] - mean) / std, (real["kinetic"] - mean) / std
+    g_ok, r_ok = np.isfinite(gz).all(axis=1), np.isfinite(rz).all(axis=1)  # motions too short for them: out
+    gz, rz, gky, rky = gz[g_ok], rz[r_ok], gy[g_ok], ry[r_ok]
     out: dict[str, float] = {
         "foot_skate": share(gen["skate"], gen["steps"]),
         "foot_contact": share(gen["contact"], gen["slots"]),
@@ -222,16 +280,17 @@ def compare(gen: dict, gen_labels: ArrayLike, real: dict, real_labels: ArrayLike
         "bone_var_median": float(np.median(gen["bones"])),
     }
     for key in ("root_up", "root_ground"):
-        ratios = {c: v for c, v in class_ratios(gen[key], gy, real[key], ry).items() if np.isfinite(v)}
+        g, r = np.isfinite(gen[key]), np.isfinite(real[key])
+        ratios = {c: v for c, v in class_ratios(gen[key][g], gy[g], real[key][r], ry[r]).items() if np.isfinite(v)}
         if ratios:  # none where the real roots keep still (as damping's speed and amplitude)
             out[key] = mean_finite(ratios.values())
         out.update({f"{key}/{c}": v for c, v in ratios.items()})
     cover = {}
     for c in np.unique(gy).tolist():
-        g, r = gy == c, ry == c
+        g = gy == c
         out[f"foot_skate/{c}"] = share(gen["skate"][g], gen["steps"][g])
         out[f"foot_contact/{c}"] = share(gen["contact"][g], gen["slots"][g])
-        cov, den = coverage_density(rz[r], gz[g])
+        cov, den = coverage_density(rz[rky == c], gz[gky == c])
         if np.isfinite(cov):
             cover[c] = (cov, den)
             out[f"coverage/{c}"], out[f"density/{c}"] = cov, den
