@@ -280,3 +280,30 @@ def test_height_weight_enters_the_total_on_the_root_sampling_draws():
     assert losses.total_loss({**base, "height": torch.tensor(0.5)}, tiny_config()).item() == 4.0
     with pytest.raises(ValueError, match="height_weight must be a number >= 0"):
         tiny_config(height_weight=-1.0)
+
+
+def test_energy_on_drawn_measures_the_motion_after_rigid_bones():
+    # a still body whose last hand bone only changes length: the decoder's joints move, the rigid
+    # readout (each bone at its median length, the same direction) does not
+    cfg = tiny_config(n_joints=24, skeleton="humanact12", energy_weight=1.0, free_energy_weight=1.0, bones="rigid")
+    gen = torch.Generator().manual_seed(0)
+    pose = torch.randn(24, 3, generator=gen, dtype=torch.float64) * 0.3
+    still = pose.expand(2, cfg.length, 24, 3).clone()  # (2, T, J, 3)
+    stretched = still.clone()
+    bone = pose[23] - pose[21]
+    scale = 1.0 + 0.5 * torch.sin(torch.arange(cfg.length, dtype=torch.float64))  # (T,)
+    stretched[:, :, 23] = pose[21] + scale[:, None] * bone
+    out = {"trajectory": still[:, :, 0], "motion": stretched, "free_motion": stretched,
+           "mu": torch.zeros(2, 5, dtype=torch.float64), "logvar": torch.full((2, 5), math.log(cfg.sigma2),
+                                                                                dtype=torch.float64)}
+    labels = torch.tensor([0, 0])
+    decoder = losses.odmo_terms(out, still, labels, cfg)
+    drawn = losses.odmo_terms(out, still, labels, replace(cfg, energy_on="drawn"))
+    assert decoder["energy"].item() > 0.01 and decoder["free_energy"].item() > 0.01
+    assert drawn["energy"].item() == pytest.approx(0.0, abs=1e-9)
+    assert drawn["free_energy"].item() == pytest.approx(0.0, abs=1e-9)
+    # with free bones the readout is the decoder's joints: the same reading either way
+    free = losses.odmo_terms(out, still, labels, replace(cfg, energy_on="drawn", bones="free"))
+    assert free["energy"].item() == pytest.approx(decoder["energy"].item(), rel=1e-9)
+    with pytest.raises(ValueError, match="energy_on must be one of decoder, drawn"):
+        tiny_config(energy_on="rigid")

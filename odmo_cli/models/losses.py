@@ -179,6 +179,13 @@ def drawn_motion(out: dict, cfg) -> torch.Tensor:
     return read_out(out.get("free_motion", out["motion"]), out["trajectory"], cfg)
 
 
+def energy_view(decoded: torch.Tensor, trajectory: torch.Tensor, cfg) -> torch.Tensor:
+    """The motion (B, T, J, 3) the L_energy terms measure: the pose decoder's joints as it draws them, or
+    with cfg.energy_on "drawn" as decode reads them out. The terms are taken about the root, so of the
+    readout only the bones count: rigid bones take away the motion a decoder puts into stretching them."""
+    return read_out(decoded, trajectory, cfg) if cfg.energy_on == "drawn" else decoded
+
+
 def drawn_root(out: dict, cfg) -> torch.Tensor:
     """The root whose height sampling draws, (B, T, 1, 3): the trajectory generator's with cfg.root
     "trajectory", else the pose decoder's on its free-running decode when there is one (the decode
@@ -211,8 +218,10 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
     else:
         l_cons = sequence_error(out["trajectory"], out["motion"][:, :, 0])
     l_vel = sequence_error(out["motion"].diff(dim=1), motion.diff(dim=1), w)
-    l_energy = energy_error(out["motion"], motion) if cfg.energy_weight else motion.new_zeros(len(motion))
-    l_free = energy_error(out["free_motion"], motion) if "free_motion" in out else motion.new_zeros(len(motion))
+    l_energy = (energy_error(energy_view(out["motion"], out["trajectory"], cfg), motion) if cfg.energy_weight
+                else motion.new_zeros(len(motion)))
+    l_free = (energy_error(energy_view(out["free_motion"], out["trajectory"], cfg), motion) if "free_motion" in out
+              else motion.new_zeros(len(motion)))
     l_height = (height_error(drawn_root(out, cfg), motion, cfg.up_axis) if cfg.height_weight
                 else motion.new_zeros(len(motion)))
     sk = SKELETONS.get(cfg.skeleton)  # the feet and bones of L_foot and L_bone (the config requires one for them)
@@ -225,7 +234,8 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
     l_mix = motion.new_zeros(half)  # per pair; 0 for pairs of two actions, which are not mixed
     if "mix_motion" in out:
         rows = out["mix_rows"]
-        l_mix = l_mix.index_put((rows,), mixed_energy_error(out["mix_motion"], motion[:half][rows],
+        mixed = energy_view(out["mix_motion"], out["trajectory"][:half][rows], cfg)
+        l_mix = l_mix.index_put((rows,), mixed_energy_error(mixed, motion[:half][rows],
                                                             motion[half:][rows], out["mix_lam"][rows]))
     mu, logvar = out["mu"], out["logvar"]
     same = labels[:half] == labels[half:]

@@ -15,6 +15,7 @@ POSE_FRAMES = ("world", "path")  # ODMOConfig.pose_frame
 POSE_LOSSES = ("world", "body")  # ODMOConfig.pose_loss
 BONES = ("rigid", "free")  # ODMOConfig.bones
 CONS = ("all", "ground")  # ODMOConfig.cons
+ENERGY_ON = ("decoder", "drawn")  # ODMOConfig.energy_on
 
 
 @dataclass
@@ -63,6 +64,10 @@ class ODMOConfig(Config):
     free_energy_weight: float = knob(0.0, "Weight of L_energy on a second, free-running decode of the same codes, "
                                           "as sampling runs it, from --free-from on (0: off; default: the preset's).",
                                      "losses")
+    # with rigid bones the decoder's stretch is motion that the readout takes away again
+    energy_on: str = knob("decoder", "What the L_energy terms measure: decoder (the pose decoder's joints as it "
+                                     "draws them) or drawn (the motion as decode reads it out, its bones as "
+                                     "`bones` says).", "losses")
     # squared position errors flatten a jump's rise wherever its frame is uncertain; this term does not
     height_weight: float = knob(0.0, "Weight of L_height, the root height's speed and amplitude against the clip's, "
                                      "on the root sampling draws (0: off, as in the paper and the release).", "losses")
@@ -100,7 +105,8 @@ class ODMOConfig(Config):
     def __post_init__(self):
         check_finite(self)
         choices = {"traj_loss": ("position", "velocity"), "root": ROOTS, "pose_frame": POSE_FRAMES,
-                   "pose_loss": POSE_LOSSES, "bones": BONES, "cons": CONS, "foot_axes": ("ground", "all")}
+                   "pose_loss": POSE_LOSSES, "bones": BONES, "cons": CONS, "foot_axes": ("ground", "all"),
+                   "energy_on": ENERGY_ON}
         for name, valid in choices.items():
             if getattr(self, name) not in valid:
                 raise ConfigError(name, f"must be one of {', '.join(valid)}, got {getattr(self, name)!r}")
