@@ -14,7 +14,7 @@ from odmo_cli.data.locate import resolve
 from odmo_cli.data.readers import read_dataset
 from odmo_cli.errors import UserError
 from odmo_cli.generation.generate import sample
-from odmo_cli.training.recipe import load_recipe, train_recipe
+from odmo_cli.training.recipe import finished_run_differences, load_recipe, train_recipe
 
 RECIPE = """
 dataset = "lines"
@@ -90,6 +90,17 @@ def test_phases_train_in_one_run_and_the_file_records_them(recipe_file, lines_cl
     assert result.report["pairs"] == 200 and result.report["hours"] > 0
     assert "held_out_foot_skate" in result.report
     assert load_model(out).model.cfg.bones == "rigid"  # a new file decodes rigid bodies
+    # what test_shipped asks of a shipped file trained by a recipe
+    assert finished_run_differences(ckpt, recipe) == []
+    assert finished_run_differences({**ckpt, "config": {**ckpt["config"], "foot_weight": 1.0}}, recipe) == [
+        "model value foot_weight = 1.0, the recipe's 5.0"]
+    assert finished_run_differences({**ckpt, "init": {"kind": "odmo"}}, recipe) == [
+        "started from another file (--init), not from scratch"]
+    other = load_recipe(recipe_file)
+    other.phases[1].train["epochs"] = 3
+    assert finished_run_differences(ckpt, other) == ["trained by another recipe than lines.toml",
+                                                     "stopped at epoch 2 of the last phase's 3"]
+    assert finished_run_differences({"kind": "odmo"}, recipe) == ["not a recipe run (no recipe in the file)"]
 
 
 def test_resume_across_a_phase_boundary_is_exact(recipe_file, lines_clips, tmp_path):
@@ -105,6 +116,7 @@ def test_resume_across_a_phase_boundary_is_exact(recipe_file, lines_clips, tmp_p
     with pytest.raises(KeyboardInterrupt):
         train_recipe(lines_clips, recipe, cut, seed=1, progress=stop_after_4)
     assert load_checkpoint(cut)["recipe_phase"] == 1 and load_checkpoint(cut)["epoch"] == 1
+    assert finished_run_differences(load_checkpoint(cut), recipe) == ["stopped at epoch 1 of the last phase's 2"]
     # a stopped run samples as it is (its latent bank and modes were built when it stopped)
     stopped = sample(load_model(cut), ["all"], 2, seed=0)
     assert stopped.motions.shape[0] == 4 and np.isfinite(stopped.motions).all()

@@ -126,13 +126,22 @@ def test_shipped_odmo_loads_safely_and_describes_its_data(short, dataset):
 
 @pytest.mark.parametrize("short, dataset", SHIPPED_ODMO)
 def test_shipped_odmo_was_trained_by_its_recipe(short, dataset):
-    """The file's chain of stages (each stage's train config, newest first, in `init`) is the
-    recipe's, stage by stage (ship.stage_differences, as a build checks a stage file), with each
-    stage's model values where recorded and always the last stage's."""
+    """A file trained by a recipe file (`odmo ship --recipe`) is a finished run of the project's
+    recipes/<dataset>.toml from scratch (training.recipe.finished_run_differences). Otherwise the file's
+    chain of stages (each stage's train config, newest first, in `init`) is the built-in recipe's, stage
+    by stage (ship.stage_differences, as a build checks a stage file), with each stage's model values
+    where recorded and always the last stage's."""
+    from pathlib import Path
+
     from odmo_cli.checkpoint import shipped_file
     from odmo_cli.ship import RECIPES, _stages, stage_differences
+    from odmo_cli.training.recipe import finished_run_differences, load_recipe
 
     ckpt = torch.load(shipped_file(short), weights_only=True)
+    if "recipe" in ckpt:
+        recipe = load_recipe(Path(__file__).resolve().parents[1] / "recipes" / f"{dataset}.toml")
+        assert finished_run_differences(ckpt, recipe) == []
+        return
     chain, node = [ckpt], ckpt.get("init")
     while node:
         chain.append(node)

@@ -82,6 +82,34 @@ class Recipe:
                    [Phase(p["name"], p["train"], p["model"]) for p in d["phases"]], d.get("budget_hours"))
 
 
+def same_training(a: Recipe, b: Recipe) -> bool:
+    """Whether two recipes train alike: where the file lies and the budget it states change no training."""
+    same = {"source": "", "budget_hours": None}
+    return a.to_dict() | same == b.to_dict() | same
+
+
+def finished_run_differences(ckpt: dict, recipe: Recipe) -> list[str]:
+    """What keeps checkpoint `ckpt` (a dict as stored) from being a finished run of `recipe` from scratch,
+    one line each; [] for a file that is one: trained by the same recipe, to its last phase's last epoch,
+    from no other file, with the last phase's model values."""
+    if "recipe" not in ckpt:
+        return ["not a recipe run (no recipe in the file)"]
+    out = []
+    if not same_training(Recipe.from_dict(ckpt["recipe"]), recipe):
+        out.append(f"trained by another recipe than {Path(recipe.source).name}")
+    last = len(recipe.phases) - 1
+    if int(ckpt.get("recipe_phase", -1)) != last:
+        out.append(f"stopped in phase {int(ckpt.get('recipe_phase', -1)) + 1} of {last + 1}")
+    elif int(ckpt.get("epoch", 0)) != int(recipe.phases[last].train["epochs"]):
+        out.append(f"stopped at epoch {ckpt.get('epoch')} of the last phase's {recipe.phases[last].train['epochs']}")
+    if ckpt.get("init"):
+        out.append("started from another file (--init), not from scratch")
+    config = ckpt.get("config", {})
+    out += [f"model value {k} = {config.get(k)!r}, the recipe's {v!r}"
+            for k, v in recipe.model_values(last).items() if config.get(k) != v]
+    return out
+
+
 def _table(where: str, value) -> dict:
     if not isinstance(value, dict):
         raise UserError(f"{where} must be a table, got {type(value).__name__}")
@@ -145,9 +173,7 @@ def train_recipe(clips, recipe: Recipe, out: str | Path, *, seed: int = 0, threa
         ckpt = load_checkpoint(resume)
         if "recipe" not in ckpt or "rng" not in ckpt:
             raise UserError(f"cannot resume {resume} with --recipe: it is not a recipe run's training checkpoint")
-        saved = Recipe.from_dict(ckpt["recipe"])
-        same = {"source": "", "budget_hours": None}  # where the file lies and the budget it states change no training
-        if saved.to_dict() | same != recipe.to_dict() | same:
+        if not same_training(Recipe.from_dict(ckpt["recipe"]), recipe):
             raise UserError(f"{resume} was trained with another recipe than {Path(recipe.source).name}; "
                             "resume it with the recipe it was started with")
         if int(ckpt["train_config"]["seed"]) != seed:
