@@ -296,10 +296,14 @@ def test_energy_on_drawn_measures_the_motion_after_rigid_bones():
     out = {"trajectory": still[:, :, 0], "motion": stretched, "free_motion": stretched,
            "mu": torch.zeros(2, 5, dtype=torch.float64), "logvar": torch.full((2, 5), math.log(cfg.sigma2),
                                                                                 dtype=torch.float64)}
+    # the one pair of one action mixed halfway: its decode stretches the same bone, on its own path
+    out.update(mix_motion=stretched[:1], mix_trajectory=still[:1, :, 0] + 1.0, mix_rows=torch.tensor([0]),
+               mix_lam=torch.tensor([0.5], dtype=torch.float64))
     labels = torch.tensor([0, 0])
     decoder = losses.odmo_terms(out, still, labels, cfg)
     drawn = losses.odmo_terms(out, still, labels, replace(cfg, energy_on="drawn"))
     assert decoder["energy"].item() > 0.01 and decoder["free_energy"].item() > 0.01
+    assert decoder["mix_energy"].item() > 0.01 and drawn["mix_energy"].item() == pytest.approx(0.0, abs=1e-9)
     assert drawn["energy"].item() == pytest.approx(0.0, abs=1e-9)
     assert drawn["free_energy"].item() == pytest.approx(0.0, abs=1e-9)
     # with free bones the readout is the decoder's joints: the same reading either way
@@ -307,3 +311,5 @@ def test_energy_on_drawn_measures_the_motion_after_rigid_bones():
     assert free["energy"].item() == pytest.approx(decoder["energy"].item(), rel=1e-9)
     with pytest.raises(ValueError, match="energy_on must be one of decoder, drawn"):
         tiny_config(energy_on="rigid")
+    with pytest.raises(ValueError, match="energy_on drawn needs the skeleton"):
+        tiny_config(energy_on="drawn")

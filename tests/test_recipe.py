@@ -101,6 +101,14 @@ def test_phases_train_in_one_run_and_the_file_records_them(recipe_file, lines_cl
     assert finished_run_differences(ckpt, other) == ["trained by another recipe than lines.toml",
                                                      "stopped at epoch 2 of the last phase's 3"]
     assert finished_run_differences({"kind": "odmo"}, recipe) == ["not a recipe run (no recipe in the file)"]
+    # a setting the file predates reads as this version's default; the preset's loss scales count too
+    older = {k: v for k, v in ckpt["config"].items() if k != "energy_on"}
+    assert finished_run_differences({**ckpt, "config": older}, recipe) == []
+    released = load_recipe(recipe_file)
+    released.preset = "release"
+    assert finished_run_differences(ckpt, released) == [
+        "trained by another recipe than lines.toml", "model value sigma2 = 0.05, the recipe's 0.0025",
+        "model value recon_weight = 1.0, the recipe's 2.0"]
 
 
 def test_resume_across_a_phase_boundary_is_exact(recipe_file, lines_clips, tmp_path):

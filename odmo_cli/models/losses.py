@@ -234,7 +234,7 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
     l_mix = motion.new_zeros(half)  # per pair; 0 for pairs of two actions, which are not mixed
     if "mix_motion" in out:
         rows = out["mix_rows"]
-        mixed = energy_view(out["mix_motion"], out["trajectory"][:half][rows], cfg)
+        mixed = energy_view(out["mix_motion"], out["mix_trajectory"], cfg)
         l_mix = l_mix.index_put((rows,), mixed_energy_error(mixed, motion[:half][rows],
                                                             motion[half:][rows], out["mix_lam"][rows]))
     mu, logvar = out["mu"], out["logvar"]

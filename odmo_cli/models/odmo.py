@@ -207,8 +207,8 @@ class ODMO(nn.Module):
         `generator`), decode with the real end point; with `free`, also without teacher forcing
         ("free_motion"). keep (2, B, H): the pose decoder's dropout (MotionGenerator.forward), the
         same units in both decodes. mix (B/2,): for the pairs of rows k and B/2 + k of one action,
-        also the free-running decode of mix z_k + (1 - mix) z_{B/2+k} ("mix_motion", those pairs'
-        rows "mix_rows", "mix_lam": mix), the end points mixed alike, without dropout."""
+        also the free-running decode of mix z_k + (1 - mix) z_{B/2+k} ("mix_motion" on its path
+        "mix_trajectory", those pairs' rows "mix_rows", "mix_lam": mix), the end points mixed alike, without dropout."""
         mu, logvar = self.encode(motion)
         if eps is None:
             eps = torch.randn(mu.shape, generator=generator, dtype=mu.dtype, device=mu.device)
@@ -230,7 +230,7 @@ class ODMO(nn.Module):
             zm = w * z[rows] + (1 - w) * z[half + rows]
             end = w * motion[rows, -1, 0] + (1 - w) * motion[half + rows, -1, 0]
             mix_traj, mix_prepared = self._plan(zm, labels[rows], end)
-            out.update(mix_motion=self.poses(mix_prepared, mix_traj), mix_rows=rows, mix_lam=mix)
+            out.update(mix_motion=self.poses(mix_prepared, mix_traj), mix_trajectory=mix_traj, mix_rows=rows, mix_lam=mix)
         return out
 
 

@@ -94,7 +94,7 @@ class ODMOConfig(Config):
                                    "the real clip's foot is planted (0: off, as in the paper and the release).",
                               "losses")
     foot_axes: str = knob("ground", "What L_foot holds still: the slide on the ground plane, or all three axes.",
-                          "experimental")
+                          "losses")
     # the cause of stretching limbs, where `bones = "rigid"` mends the output after it
     bone_weight: float = knob(0.0, "Weight of L_bone, each bone of the pose decoder's output against the clip's "
                                    "length for it (0: off).", "experimental")
@@ -122,6 +122,8 @@ class ODMOConfig(Config):
         for name in ("foot_weight", "bone_weight"):
             if getattr(self, name) and not self.skeleton:
                 raise ConfigError(name, "needs the skeleton (its feet and bones): set skeleton")
+        if self.energy_on == "drawn" and not self.skeleton:
+            raise ConfigError("energy_on", "drawn needs the skeleton (the bones decode reads out): set skeleton")
         for name in ("latent_dim", "encoder_hidden", "encoder_fc", "traj_hidden", "motion_hidden"):
             if getattr(self, name) < 1:
                 raise ConfigError(name, f"must be a positive number of units, got {getattr(self, name)}")

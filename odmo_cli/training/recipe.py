@@ -25,7 +25,7 @@ from pathlib import Path
 
 from odmo_cli.config import read_toml, refuse_unknown
 from odmo_cli.errors import UserError
-from odmo_cli.models.odmo_config import ODMOConfig
+from odmo_cli.models.odmo_config import ODMOConfig, preset_values
 from odmo_cli.training.configs import DATA_SHAPES, TrainConfig  # DATA_SHAPES: a recipe serves any dataset
 
 TOP = ("dataset", "preset", "budget_hours", "model", "train", "phases")
@@ -104,9 +104,13 @@ def finished_run_differences(ckpt: dict, recipe: Recipe) -> list[str]:
         out.append(f"stopped at epoch {ckpt.get('epoch')} of the last phase's {recipe.phases[last].train['epochs']}")
     if ckpt.get("init"):
         out.append("started from another file (--init), not from scratch")
-    config = ckpt.get("config", {})
-    out += [f"model value {k} = {config.get(k)!r}, the recipe's {v!r}"
-            for k, v in recipe.model_values(last).items() if config.get(k) != v]
+    # the file's values with this version's defaults for settings it predates, against the preset's
+    # loss scales under the recipe's values (as training.odmo.model_config_for builds them)
+    defaults = {f.name: f.default for f in fields(ODMOConfig)}
+    config = {**defaults, **ckpt.get("config", {})}
+    dataset = recipe.dataset or ckpt.get("dataset", {}).get("name", "")
+    expected = {**preset_values(recipe.preset, dataset), **recipe.model_values(last)}
+    out += [f"model value {k} = {config.get(k)!r}, the recipe's {v!r}" for k, v in expected.items() if config.get(k) != v]
     return out
 
 
