@@ -185,7 +185,7 @@ def test_pose_loss_body_counts_the_roots_path_once():
     """pose_loss="body": L_mre compares every joint but the root about the root, and the root itself;
     a path off by d costs d^2 in every joint of the world-frame loss, in the root alone here."""
     cfg = tiny_config()  # J = 4, T = 8, the vertical axis weighted x5
-    motion = torch.randn(2, cfg.length, cfg.n_joints, 3)
+    motion = torch.randn(2, cfg.length, cfg.n_joints, 3, generator=torch.Generator().manual_seed(0))
     about = losses.about_root(motion)
     assert torch.equal(about[:, :, 0], motion[:, :, 0])
     assert torch.allclose(about[:, :, 1:] + motion[:, :, :1], motion[:, :, 1:])
@@ -313,3 +313,38 @@ def test_energy_on_drawn_measures_the_motion_after_rigid_bones():
         tiny_config(energy_on="rigid")
     with pytest.raises(ValueError, match="energy_on drawn needs the skeleton"):
         tiny_config(energy_on="drawn")
+
+
+def test_ground_error_known_values_and_the_path_sampling_draws():
+    T = 12
+    t = torch.arange(T, dtype=torch.float64)
+    straight = torch.zeros(1, T, 3, dtype=torch.float64)
+    straight[..., 0] = 0.01 * t  # 1 cm a frame along x, y up
+    assert losses.ground_speed(straight, 1).item() == pytest.approx(0.01, rel=1e-6)
+    # a zigzag about the same line: the same displacement, a longer way
+    zigzag = straight.clone()
+    zigzag[..., 2] = 0.03 * (t % 2)
+    smoothed = zigzag[0, :, [0, 2]].unfold(0, 3, 1).mean(-1)  # what the 3-frame average leaves of it
+    expect = smoothed.diff(dim=0).norm(dim=-1).mean().item()
+    assert losses.ground_speed(zigzag, 1).item() == pytest.approx(expect, rel=1e-6) and expect > 0.0105
+    clip = torch.zeros(1, T, 4, 3, dtype=torch.float64)
+    clip[:, :, 0] = 2 * straight  # the real clip travels 2 cm a frame
+    assert losses.ground_error(straight, clip, 1).item() == pytest.approx(math.log(0.012 / 0.022) ** 2, rel=1e-6)
+    assert losses.ground_error(2 * straight, clip, 1).item() == pytest.approx(0.0, abs=1e-9)
+    # the height does not count
+    lifted = 2 * straight
+    lifted[..., 1] = 0.05 * torch.sin(t)
+    assert losses.ground_error(lifted, clip, 1).item() == pytest.approx(0.0, abs=1e-9)
+    # in the terms: on the trajectory generator's path, weighted into the total
+    cfg = tiny_config(ground_weight=2.0, root="ground")
+    target = torch.cat([clip.float().expand(2, -1, -1, -1)[:, :cfg.length]], dim=0)  # (2, T, 4, 3)
+    out = {"trajectory": straight.float().expand(2, -1, -1)[:, :cfg.length], "motion": target, "free_motion": target,
+           "mu": torch.zeros(2, 5), "logvar": torch.full((2, 5), math.log(cfg.sigma2))}
+    terms = losses.odmo_terms(out, target, torch.tensor([0, 0]), cfg)
+    assert terms["ground"].item() == pytest.approx(math.log(0.012 / 0.022) ** 2, rel=1e-4)
+    decoder = losses.odmo_terms(out, target, torch.tensor([0, 0]), replace(cfg, root="decoder"))
+    assert decoder["ground"].item() == pytest.approx(0.0, abs=1e-6)  # the decoder's own root is the clip's
+    base = {k: torch.tensor(1.0) for k in ("mre", "es", "vae", "r", "cons")}
+    assert losses.total_loss({**base, "ground": torch.tensor(0.5)}, cfg).item() == 5.0
+    with pytest.raises(ValueError, match="ground_weight must be a number >= 0"):
+        tiny_config(ground_weight=-1.0)

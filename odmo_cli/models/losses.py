@@ -133,6 +133,25 @@ def height_error(pred: torch.Tensor, target: torch.Tensor, up_axis: int, speed_f
 
 
 
+def ground_speed(path: torch.Tensor, up_axis: int, smooth: int = 3) -> torch.Tensor:
+    """Per clip: the mean length of the frame-to-frame step of a path (B, T, 3) on the ground plane,
+    after a `smooth`-frame moving average: (B,), units per frame: how far the root travels, its sway
+    and turns included, not only from its first point to its last."""
+    ground = [i for i in range(3) if i != up_axis]
+    g = path[..., ground]  # (B, T, 2)
+    if smooth > 1:
+        g = g.unfold(1, smooth, 1).mean(-1)  # (B, T - smooth + 1, 2)
+    return torch.sqrt(g.diff(dim=1).pow(2).sum(-1) + 1e-12).mean(1)
+
+
+def ground_error(path: torch.Tensor, target: torch.Tensor, up_axis: int, floor: float = 0.002) -> torch.Tensor:
+    """How far a root path's (B, T, 3) travel on the ground plane (ground_speed) is from the target clip's
+    (B, T, J, 3) root's, phase-blind, as a squared log ratio with `floor` (units per frame) added to both
+    sides: (B,). Squared position errors straighten a path whose sway and turns are uncertain in phase,
+    and the path that is left covers the distance at a glide (as height_error for the root's rise)."""
+    sp, st = ground_speed(path, up_axis), ground_speed(target[:, :, 0], up_axis)
+    return torch.log((sp + floor) / (st + floor)).pow(2)
+
 
 def contact_labels(motion: torch.Tensor, feet: list[int], leg: tuple[int, int, int], up_axis: int,
                    up_sign: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -186,6 +205,14 @@ def energy_view(decoded: torch.Tensor, trajectory: torch.Tensor, cfg) -> torch.T
     return read_out(decoded, trajectory, cfg) if cfg.energy_on == "drawn" else decoded
 
 
+def drawn_path(out: dict, cfg) -> torch.Tensor:
+    """The root path (B, T, 3) whose ground-plane coordinates sampling draws: the trajectory generator's,
+    or with cfg.root "decoder" the pose decoder's root on its free-running decode when there is one."""
+    if cfg.root == "decoder":
+        return out.get("free_motion", out["motion"])[:, :, 0]
+    return out["trajectory"]
+
+
 def drawn_root(out: dict, cfg) -> torch.Tensor:
     """The root whose height sampling draws, (B, T, 1, 3): the trajectory generator's with cfg.root
     "trajectory", else the pose decoder's on its free-running decode when there is one (the decode
@@ -224,6 +251,8 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
               else motion.new_zeros(len(motion)))
     l_height = (height_error(drawn_root(out, cfg), motion, cfg.up_axis) if cfg.height_weight
                 else motion.new_zeros(len(motion)))
+    l_ground = (ground_error(drawn_path(out, cfg), motion, cfg.up_axis) if cfg.ground_weight
+                else motion.new_zeros(len(motion)))
     sk = SKELETONS.get(cfg.skeleton)  # the feet and bones of L_foot and L_bone (the config requires one for them)
     l_foot = (foot_contact_error(drawn_motion(out, cfg), motion, list(sk.feet), sk.legs[0][:3], cfg.up_axis,
                                  sk.up_sign, vertical=cfg.foot_axes == "all")
@@ -250,6 +279,7 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
         "energy": l_energy.mean(),
         "free_energy": l_free.mean(),
         "height": l_height.mean(),
+        "ground": l_ground.mean(),
         "mix_energy": l_mix.mean(),
         "foot": l_foot.mean(),
         "bone": l_bone.mean(),
@@ -269,6 +299,8 @@ def total_loss(terms: dict[str, torch.Tensor], cfg) -> torch.Tensor:
         recon = recon + cfg.free_energy_weight * terms["free_energy"]
     if cfg.height_weight:
         recon = recon + cfg.height_weight * terms["height"]
+    if cfg.ground_weight:
+        recon = recon + cfg.ground_weight * terms["ground"]
     if cfg.mix_energy_weight:
         recon = recon + cfg.mix_energy_weight * terms["mix_energy"]
     if cfg.foot_weight:

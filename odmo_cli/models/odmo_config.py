@@ -71,6 +71,10 @@ class ODMOConfig(Config):
     # squared position errors flatten a jump's rise wherever its frame is uncertain; this term does not
     height_weight: float = knob(0.0, "Weight of L_height, the root height's speed and amplitude against the clip's, "
                                      "on the root sampling draws (0: off, as in the paper and the release).", "losses")
+    # squared position errors straighten a path whose sway is uncertain in phase: a glide
+    ground_weight: float = knob(0.0, "Weight of L_ground, the root path's travel on the ground plane (its mean step, "
+                                     "sway and turns included) against the clip's, on the path sampling draws (0: off, "
+                                     "as in the paper and the release).", "losses")
     # sampling draws codes between the training clips'; the other terms only see codes next to them
     mix_energy_weight: float = knob(0.0, "Weight of L_energy on free-running decodes of codes mixed between two "
                                          "training clips of one action, asked to move as that mixture of the two "
@@ -116,7 +120,7 @@ class ODMOConfig(Config):
             if not getattr(self, name) > 0:
                 raise ConfigError(name, f"must be a number > 0, got {getattr(self, name)}")
         for name in ("vel_weight", "energy_weight", "free_energy_weight", "height_weight", "mix_energy_weight",
-                     "foot_weight", "bone_weight"):
+                     "foot_weight", "bone_weight", "ground_weight"):
             if getattr(self, name) < 0:
                 raise ConfigError(name, f"must be a number >= 0, got {getattr(self, name)}")
         for name in ("foot_weight", "bone_weight"):

@@ -34,7 +34,7 @@ PHASE = ("name", "model")
 PHASE_MODEL = ("alpha", "sigma2", "same_class_deadzone", "recon_weight", "use_es", "use_traj", "use_cons",
                "up_weight", "traj_loss", "vel_weight", "energy_weight", "free_energy_weight", "height_weight",
                "mix_energy_weight", "root", "pose_loss", "bones", "foot_weight", "foot_axes", "bone_weight", "cons",
-               "energy_on")
+               "energy_on", "ground_weight")
 # the split is the run's: a phase on another split would validate on clips it trained on
 RUN_ONLY = ("val_fraction", "split_seed", "seed", "threads")
 
