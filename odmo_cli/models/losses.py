@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 
 from odmo_cli.geometry.kinematics import bone_lengths, root_velocities
-from odmo_cli.geometry.skeletons import SKELETONS
+from odmo_cli.geometry.skeletons import SKELETONS, ground_axes
 from odmo_cli.measures.plausibility import CONTACT_HEIGHT  # the evaluation's contact, so the loss and the measure agree
 from odmo_cli.models.odmo import read_out
 
@@ -62,13 +62,17 @@ def about_root(motion: torch.Tensor) -> torch.Tensor:
     return torch.cat([motion[:, :, :1], motion[:, :, 1:] - motion[:, :, :1]], dim=2)
 
 
+def _smooth(x: torch.Tensor, k: int) -> torch.Tensor:
+    """A centred k-frame moving average over axis 1 (the frames): (B, T, ...) -> (B, T - k + 1, ...)."""
+    return x.unfold(1, k, 1).mean(-1) if k > 1 else x
+
+
 def body_motion_stats(motion: torch.Tensor, smooth: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
     """Per clip and joint: speed (mean norm of the frame-to-frame change) and amplitude (RMS distance
     from the mean position) of the joints about the root, after a `smooth`-frame moving average:
     (B, T, J, 3) -> (B, J-1), (B, J-1). The differentiable twin of diagnostics.body_speed/body_amplitude."""
     body = motion[:, :, 1:] - motion[:, :, :1]  # (B, T, J-1, 3)
-    if smooth > 1:
-        body = body.unfold(1, smooth, 1).mean(-1)  # (B, T - smooth + 1, J-1, 3)
+    body = _smooth(body, smooth)  # (B, T - smooth + 1, J-1, 3)
     speed = torch.sqrt(body.diff(dim=1).pow(2).sum(-1) + 1e-12).mean(1)
     amplitude = torch.sqrt((body - body.mean(1, keepdim=True)).pow(2).sum(-1).mean(1) + 1e-12)
     return speed, amplitude
@@ -107,8 +111,7 @@ def root_height_stats(motion: torch.Tensor, up_axis: int, smooth: int = 3) -> tu
     match a jump's spread by drifting (measured: it did). The twin of
     diagnostics.root_height_speed_and_amplitude."""
     h = motion[:, :, 0, up_axis]  # (B, T)
-    if smooth > 1:
-        h = h.unfold(1, smooth, 1).mean(-1)  # (B, T - smooth + 1)
+    h = _smooth(h, smooth)  # (B, T - smooth + 1)
     speed = h.diff(dim=1).abs().mean(1)
     t = torch.arange(h.shape[1], dtype=h.dtype, device=h.device)
     t = t - t.mean()
@@ -137,10 +140,7 @@ def ground_speed(path: torch.Tensor, up_axis: int, smooth: int = 3) -> torch.Ten
     """Per clip: the mean length of the frame-to-frame step of a path (B, T, 3) on the ground plane,
     after a `smooth`-frame moving average: (B,), units per frame: how far the root travels, its sway
     and turns included, not only from its first point to its last."""
-    ground = [i for i in range(3) if i != up_axis]
-    g = path[..., ground]  # (B, T, 2)
-    if smooth > 1:
-        g = g.unfold(1, smooth, 1).mean(-1)  # (B, T - smooth + 1, 2)
+    g = _smooth(path[..., list(ground_axes(up_axis))], smooth)  # (B, T - smooth + 1, 2)
     return torch.sqrt(g.diff(dim=1).pow(2).sum(-1) + 1e-12).mean(1)
 
 
@@ -174,7 +174,7 @@ def foot_contact_error(pred: torch.Tensor, target: torch.Tensor, feet: list[int]
     lengths, summed over the planted steps and averaged over the frames: (B,). 0 for feet that stay where
     the clip's stay. A planted foot that keeps its height too ties the root's height to the legs' bend."""
     planted, length = contact_labels(target, feet, leg, up_axis, up_sign)
-    axes = [0, 1, 2] if vertical else [i for i in range(3) if i != up_axis]
+    axes = [0, 1, 2] if vertical else list(ground_axes(up_axis))
     step = pred[:, 1:, feet][..., axes] - pred[:, :-1, feet][..., axes]  # (B, T-1, F, 2 or 3)
     slide = step.pow(2).sum(-1) / length[:, None, None].pow(2)
     return (slide * planted).sum(dim=(1, 2)) / planted.shape[1]
@@ -240,7 +240,7 @@ def odmo_terms(out: dict, motion: torch.Tensor, labels: torch.Tensor, cfg) -> di
     if cfg.cons == "ground":  # the path on the ground plane only: the decoder's root height is its own
         # (the mean over two axes, not three: each ground axis weighs 1.5 times what it does with "all",
         # as measured in docs/lab/planted-feet.md)
-        ground = [i for i in range(3) if i != cfg.up_axis]
+        ground = list(ground_axes(cfg.up_axis))
         l_cons = sequence_error(out["trajectory"][..., ground], out["motion"][:, :, 0, ground])
     else:
         l_cons = sequence_error(out["trajectory"], out["motion"][:, :, 0])

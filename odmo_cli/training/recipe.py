@@ -105,10 +105,10 @@ def finished_run_differences(ckpt: dict, recipe: Recipe) -> list[str]:
     if ckpt.get("init"):
         out.append("started from another file (--init), not from scratch")
     # the file's values with this version's defaults for settings it predates, against the preset's
-    # loss scales under the recipe's values (as training.odmo.model_config_for builds them)
-    defaults = {f.name: f.default for f in fields(ODMOConfig)}
-    config = {**defaults, **ckpt.get("config", {})}
-    dataset = recipe.dataset or ckpt.get("dataset", {}).get("name", "")
+    # loss scales for the data it was trained on under the recipe's values (as
+    # training.odmo.model_config_for builds them)
+    config = ODMOConfig.from_saved(ckpt.get("config", {})).to_dict()
+    dataset = ckpt.get("dataset", {}).get("name") or recipe.dataset or ""
     expected = {**preset_values(recipe.preset, dataset), **recipe.model_values(last)}
     out += [f"model value {k} = {config.get(k)!r}, the recipe's {v!r}" for k, v in expected.items() if config.get(k) != v]
     return out
