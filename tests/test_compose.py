@@ -257,6 +257,23 @@ def test_a_baseline_model_is_refused(tmp_path):
 
 # -- the seam's geometry --------------------------------------------------------------------------
 
+@pytest.mark.parametrize("primed", [False, True])
+def test_a_window_cut_short_is_the_whole_windows_first_frames(primed, cmu):
+    # the decoder is causal: drawing only the frames a window keeps changes none of them
+    from odmo_cli.generation.compose import _Windows
+
+    win = _Windows(cmu, ComposeConfig())
+    g = torch.Generator().manual_seed(0)
+    z = torch.randn(3, cmu.model.cfg.latent_dim, generator=g)
+    cond = win._cond(z, torch.tensor([0, 1, 2]))
+    path = win._path(cond, torch.zeros(3, 3))
+    primer = torch.randn(3, 2, cmu.model.cfg.n_joints, 3, generator=g) if primed else None
+    whole = win._decode(cond, path, primer)
+    cut = win._decode(cond, path, primer, steps=37)
+    assert cut.shape[1] == 37 and whole.shape[1] == path.shape[1]
+    torch.testing.assert_close(cut, whole[:, :37])
+
+
 def test_a_turn_about_the_up_axis_turns_the_heading_and_keeps_lengths():
     sk = get_skeleton("humanact12")  # -y up: the ground plane is x, z
     pose = torch.from_numpy(load_demo("humanact12").motions[0][:1].astype(np.float64))  # (1, J, 3)

@@ -259,3 +259,24 @@ def test_rigid_bones_with_torso_branches_keeps_a_turning_rigid_body_and_stiffens
     for a, b in ((1, 2), (1, 3), (2, 3), (12, 13), (13, 14)):  # distances inside each rigid piece stay fixed
         d = torch.linalg.vector_norm(fixed[:, a] - fixed[:, b], dim=-1)
         assert float(d.max() - d.min()) < 1e-9
+
+
+def test_rigid_bones_takes_the_torso_pieces_of_another_motion_of_the_body():
+    from odmo_cli.geometry.lie import rigid_bones, rigid_pieces, torso_branches
+    from odmo_cli.geometry.skeletons import get_skeleton
+
+    sk = get_skeleton("humanact12")
+    branches = torso_branches(sk)
+    g = torch.Generator().manual_seed(2)
+    motion = torch.randn(2, 20, 24, 3, generator=g, dtype=torch.float64)  # (B, T, J, 3)
+    pieces = rigid_pieces(motion, branches)
+    assert set(pieces) == set(branches) and pieces[0].shape == (2, 1, 3, 3)
+    own = rigid_bones(motion, sk.parents, branches=branches)
+    assert torch.allclose(rigid_bones(motion, sk.parents, branches=branches, pieces=pieces), own, atol=1e-12)
+    # another motion given these pieces: its pelvis piece is the first one's, wherever the body turns
+    other = torch.randn(2, 20, 24, 3, generator=g, dtype=torch.float64)
+    moved = rigid_bones(other, sk.parents, branches=branches, pieces=pieces)
+    for a, b in ((1, 2), (1, 3), (2, 3)):
+        assert torch.allclose(torch.linalg.vector_norm(moved[:, :, a] - moved[:, :, b], dim=-1),
+                              torch.linalg.vector_norm(pieces[0][..., a - 1] - pieces[0][..., b - 1], dim=-1), atol=1e-9)
+    assert not torch.allclose(moved, rigid_bones(other, sk.parents, branches=branches))

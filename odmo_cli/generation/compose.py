@@ -14,7 +14,9 @@ ODMO makes windows of T frames (its clip length). A composition is built window 
 - The first window is an ordinary sample; or, with `start`, the given motion is kept exactly.
 - Every later window is *primed* with the motion's last k frames so far (ComposeConfig.prime): the
   autoregressive pose decoder is teacher-forced with them for k steps, then draws the model's whole
-  window of T new frames (k + T steps). The root path is theirs for those k steps and the trajectory
+  window of T new frames (k + T steps), starting from the encoding of the path the trajectory generator
+  drew for the window (T frames from the origin, as in training; the same encoding gives the heading
+  below). The root path is theirs for those k steps and the trajectory
   generator's own after them, its ground-plane velocity fading in from the primer's over the
   transition (`seam.splice_path`).
 - The window is drawn in the model's frame, as the model was trained: the primed frames are moved so
@@ -33,9 +35,9 @@ ODMO makes windows of T frames (its clip length). A composition is built window 
   fresh code of the same mode; a shorter one keeps the first frames. With `to X,Z` each window's end
   point is corrected (ComposeConfig.end_steps times) so that its last kept frame lands on its share of
   the way.
-- A model with rigid bones (ODMOConfig.bones) draws every window with the bone lengths of the first one
-  (or of the given start), and the new frames get one torso shape at the end (geometry.lie.rigid_bones),
-  so the body keeps its size throughout and a BVH reproduces it.
+- A model with rigid bones (ODMOConfig.bones) gives every later window, once faded, the body of the first
+  one (or of the given start): its bone lengths and its torso's shape (geometry.lie.rigid_bones), so the
+  body keeps its size throughout and a BVH reproduces it.
 
 `method="paste"` is the cut-and-paste baseline the measurements compare with (evaluation/composition.py):
 every window sampled on its own, placed so its first root is on the last one's on the ground plane,
@@ -61,7 +63,7 @@ from odmo_cli.formats.samples import write_samples
 from odmo_cli.generation.generate import end_points_for
 from odmo_cli.generation.seam import fade, fade_length, heading, leg_length, settle_feet, splice_path, turn, wrap
 from odmo_cli.geometry.kinematics import bone_lengths
-from odmo_cli.geometry.lie import rigid_bones, torso_branches
+from odmo_cli.geometry.lie import rigid_bones, rigid_pieces, torso_branches
 from odmo_cli.geometry.skeletons import get_skeleton, ground_axes
 from odmo_cli.models.latent import codes_of, mode_ids
 from odmo_cli.models.odmo import condition, read_out
@@ -241,15 +243,22 @@ class _Windows:
         self.dev = model_device(self.model)
         self.free_cfg = replace(self.model.cfg, bones="free")
         self.rigid = self.model.cfg.bones == "rigid" and bool(self.model.cfg.skeleton)
+        self.branches = torso_branches(self.sk) if self.rigid else {}
         self.lengths: torch.Tensor | None = None  # (K, J): the composition's bones (rigid models), set by keep_body
+        self.pieces: dict[int, torch.Tensor] | None = None  # its torso's rigid pieces (geometry.lie.rigid_pieces)
 
     def keep_body(self, motion: torch.Tensor) -> None:
-        """Every later window's bones get the lengths of motion's (K, L, J, 3): each bone's median."""
+        """Every later window's body is motion's (K, L, J, 3): each bone's median length, the torso's mean shape."""
         if self.rigid:
             parents = self.sk.parents
             child = [j for j, p in enumerate(parents) if p >= 0]
             self.lengths = motion.new_zeros(len(motion), len(parents))
             self.lengths[:, child] = bone_lengths(motion, parents).median(dim=-2).values
+            self.pieces = rigid_pieces(motion, self.branches)
+
+    def body(self, motion: torch.Tensor) -> torch.Tensor:
+        """motion (K, T', J, 3) with the composition's body (`keep_body`): rigid models only."""
+        return rigid_bones(motion, self.sk.parents, self.lengths, self.branches, self.pieces)
 
     def _cond(self, z: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
         return condition(F.one_hot(labels, self.model.cfg.n_classes).to(z.dtype), z)  # (K, C*D)
@@ -257,44 +266,52 @@ class _Windows:
     def _path(self, cond: torch.Tensor, end: torch.Tensor) -> torch.Tensor:
         return torch.cumsum(self.model.trajectory(cond, end), dim=1)  # (K, T, 3), r_t = sum of v
 
-    def _decode(self, cond, path, primer=None) -> torch.Tensor:
+    def _decode(self, cond, path, primer=None, states=None, rigid=True, steps=None) -> torch.Tensor:
         """The pose decoder along `path` (K, T', 3), teacher-forced with primer (K, k, J, 3) at its
-        first k frames -> (K, T', J, 3), the root read as the model's cfg.root says, the bones as its
-        cfg.bones says (rigid: the composition's lengths, `keep_body`)."""
+        first k frames -> its first `steps` frames (K, steps, J, 3; default all T'), the root read as the
+        model's cfg.root says, the bones as its cfg.bones says (rigid: the composition's body, `keep_body`;
+        rigid=False leaves them free for a caller that makes them rigid later). states: the decoder's
+        starting state (MotionGenerator.encode_path), when not path's own. The decoder is causal, so the
+        frames drawn do not depend on `steps`: a window cut short is not drawn to its end."""
+        motion_net = self.model.motion
+        states = states if states is not None else motion_net.encode_path(path)
+        prepared = (states, motion_net.step_inputs(cond, path.shape[1])[:steps])  # t/T' over the whole window
+        path = path[:, :steps]
         T = path.shape[1]
-        prepared = self.model.motion.prepare(path, cond)
         target = teacher = None
         if primer is not None:
             k = primer.shape[1]
             target = torch.cat([primer, primer.new_zeros(len(primer), T - k, *primer.shape[2:])], dim=1)
             teacher = torch.arange(T, device=path.device) <= k  # step t is fed target[t - 1]
-        poses = self.model.poses(prepared, path, target, teacher)  # (K, T', J, 3)
+        poses = self.model.poses(prepared, path, target, teacher)  # (K, T, J, 3)
         motion = read_out(poses, path, self.free_cfg)
-        if self.rigid:
-            motion = rigid_bones(motion, self.sk.parents, self.lengths, branches=torso_branches(self.sk))
+        if self.rigid and rigid:
+            motion = self.body(motion)
         return motion
 
-    def _own_pose(self, cond, path) -> torch.Tensor:
-        """The first pose the model draws for this code on its own (one step of the pose decoder):
-        (K, J, 3) in its frame, its root as the decoder draws it."""
-        states, fixed = self.model.motion.prepare(path, cond)
-        return self.model.motion.unroll((states, fixed[:1]))[:, 0].view(len(path), -1, 3)
+    def _own_pose(self, cond, states) -> torch.Tensor:
+        """The first pose the model draws for this code on its own (one step of the pose decoder from
+        `states`, its path's encoding): (K, J, 3) in its frame, its root as the decoder draws it."""
+        first_step = self.model.motion.step_inputs(cond, self.T)[:1]
+        return self.model.motion.unroll((states, first_step))[:, 0].view(len(cond), -1, 3)
 
     def first(self, z, labels, ends, m: int, target: torch.Tensor | None):
         """The composition's first window: an ordinary sample from the origin -> (K, m, J, 3)."""
         cond = self._cond(z, labels)
-        path = self._aim(cond, ends, target, lambda p: p - p[:, :1], 1, m - 1)
-        motion = self._decode(cond, path)
-        return motion[:, :m] - motion[:, :1, :1]
+        path, _ = self._aim(cond, ends, target, lambda p: p - p[:, :1], 1, m - 1)
+        motion = self._decode(cond, path, steps=m)
+        return motion - motion[:, :1, :1]
 
     def primed(self, z, labels, ends, prev: torch.Tensor, m: int, target: torch.Tensor | None):
         """A window continuing prev (K, k, J, 3), the motion's last k frames (world frame) -> its m <= T
         new frames (K, m, J, 3) in the world frame and the turn that placed them (K,). The decoder runs
-        k + T steps: the k primed ones, then the model's whole window."""
+        k + T steps: the k primed ones, then the model's whole window, from the encoding of the path the
+        trajectory generator drew (T frames from the origin, as in training), not of the spliced path."""
         k = prev.shape[1]
         cond = self._cond(z, labels)
         raw = self._path(cond, ends)  # (K, T, 3)
-        own = self._own_pose(cond, raw)
+        states = self.model.motion.encode_path(raw)
+        own = self._own_pose(cond, states)
         yaw = wrap(heading(prev[:, -1], self.sk) - heading(own, self.sk))
         rot = turn(yaw, self.up)  # (K, 3, 3) model -> world
         anchor = prev[:, 0, 0]  # (K, 3)
@@ -303,10 +320,12 @@ class _Windows:
         if target is not None:
             target = torch.einsum("kc,kcd->kd", torch.nan_to_num(target - anchor), rot)
         after = lambda p: torch.cat([p[:, :1].expand(-1, k, -1), p], dim=1)  # noqa: E731  (K, k + T, 3)
-        path = self._aim(cond, ends, target,
-                         lambda p: splice_path(after(p), primer[:, :, 0], height, self.cfg.blend, self.up),
-                         k, k + m - 1, raw)
-        motion = self._decode(cond, path, primer)  # (K, k + T, J, 3)
+        path, drawn = self._aim(cond, ends, target,
+                                lambda p: splice_path(after(p), primer[:, :, 0], height, self.cfg.blend, self.up),
+                                k, k + m - 1, raw)
+        if drawn is not raw:  # aimed at a target: the path was drawn again
+            states = self.model.motion.encode_path(drawn)
+        motion = self._decode(cond, path, primer, states, rigid=False, steps=k + m)  # (K, k + m, J, 3), bones free
         offset = primer[:, -1] - motion[:, k - 1]  # (K, J, 3)
         cfg = self.cfg
         frames = cfg.blend
@@ -314,33 +333,37 @@ class _Windows:
             leg = leg_length(primer[:, -1], self.sk.legs[0])  # (K,)
             frames = fade_length(offset, cfg.blend, cfg.longest, cfg.fade_speed * leg / self.fps)  # (K,)
         new = fade(motion[:, k:k + m], offset, frames)
-        if self.rigid:  # the fade moves a bone's two ends by different offsets: back to the body's lengths
-            new = rigid_bones(new, self.sk.parents, self.lengths)
+        if self.rigid:  # the decoder's bones, and the fade moving a bone's two ends apart: back to the body
+            new = self.body(new)
         if cfg.settle:  # the leg's IK keeps the lengths
             new = settle_feet(new, motion[:, k:k + m], offset, self.sk, self.fps, cfg.longest)
         return torch.einsum("ktjd,kcd->ktjc", new, rot) + anchor[:, None, None], yaw
 
-    def _aim(self, cond, ends, target, place, first: int, last: int, raw=None) -> torch.Tensor:
-        """The window's placed path (K, T', 3). With a target (K, 3) in its frame, the end point's ground
+    def _aim(self, cond, ends, target, place, first: int, last: int, raw=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The window's placed path (K, T', 3) and the trajectory generator's path it was placed from
+        (K, T, 3). With a target (K, 3) in its frame, the end point's ground
         coordinates start at the target's and are corrected end_steps times by the miss at frame `last`;
         what is still missed then is taken up by the path's ground-plane coordinates, growing linearly
         from frame `first` - 1 to `last`, so the path lands on the target (the trajectory generator
         reaches only end points like its training clips', and a point farther than the action goes in
         its time would be missed). raw: the path for `ends`, when already drawn."""
         if target is None:
-            return place(raw if raw is not None else self._path(cond, ends))
+            drawn = raw if raw is not None else self._path(cond, ends)
+            return place(drawn), drawn
         ends = ends.clone()
         ends[:, self.g] = target[:, self.g]
-        path = place(self._path(cond, ends))
+        drawn = self._path(cond, ends)
+        path = place(drawn)
         for _ in range(self.cfg.end_steps):
             ends[:, self.g] += target[:, self.g] - path[:, last, self.g]
-            path = place(self._path(cond, ends))
+            drawn = self._path(cond, ends)
+            path = place(drawn)
         miss = target[:, self.g] - path[:, last, self.g]  # (K, 2)
         t = torch.arange(path.shape[1], dtype=path.dtype, device=path.device)
         share = ((t - first + 1) / (last - first + 1)).clamp(0, 1)  # (T',)
         path = path.clone()
         path[..., self.g] += share[None, :, None] * miss[:, None]
-        return path
+        return path, drawn
 
     def pasted(self, z, labels, ends, prev: torch.Tensor | None, m: int, target: torch.Tensor | None):
         """The baseline: a window sampled on its own (bones as the model decodes them; a target (K, 3) is
@@ -445,9 +468,6 @@ def compose(loaded: LoadedODMO, spec: str | list[Segment], n: int = 1, seed: int
         bounds.append((first, first + seg.frames))
         labels_so_far += [seg.name] * seg.frames
     motions = torch.cat(pieces, dim=1)  # (K, L, J, 3)
-    if win.rigid and cfg.method == "primed":  # one torso shape for the whole motion (each window's was its own)
-        rigid = rigid_bones(motions, win.sk.parents, win.lengths, branches=torso_branches(win.sk))
-        motions = torch.cat([motions[:, :prefix], rigid[:, prefix:]], dim=1)
     return Composition(
         motions.cpu().numpy().astype(np.float32), np.array(labels_so_far), np.array(bounds, dtype=np.int64),
         np.array([s.name for s in planned]), np.stack(seg_modes, axis=1),

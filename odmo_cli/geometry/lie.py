@@ -561,7 +561,8 @@ def retarget(
 
 
 def rigid_bones(motion: torch.Tensor, parents: Sequence[int], lengths: torch.Tensor | None = None,
-                branches: dict[int, tuple[int, int, int]] | None = None) -> torch.Tensor:
+                branches: dict[int, tuple[int, int, int]] | None = None,
+                pieces: dict[int, torch.Tensor] | None = None) -> torch.Tensor:
     """Motion (..., T, J, 3) with every bone at one length for all frames: each joint at its parent's new
     position plus its own direction from the parent times the bone's length. The root stays where it is
     and every bone keeps its direction, so only lengths change.
@@ -572,7 +573,9 @@ def rigid_bones(motion: torch.Tensor, parents: Sequence[int], lengths: torch.Ten
     spine, a chest with its collars and neck), as in a body model and in BVH export: the children sit at
     their mean offsets in the joint's body frame (body_frame of the three directions), so the angles
     between them stay fixed too, and at their mean offsets' lengths (`lengths` does not apply to them).
-    Differentiable; a bone of zero length keeps its child on the parent."""
+    pieces {joint: (..., 1, 3, 3)}: those offsets given (`rigid_pieces` of another motion of the same
+    body) instead of this motion's means. Differentiable; a bone of zero length keeps its child on the
+    parent."""
     check_motion(motion, n_joints=len(parents))
     child = torch.tensor([j for j, p in enumerate(parents) if p >= 0], device=motion.device)
     parent = torch.tensor([parents[j] for j in child.tolist()], device=motion.device)
@@ -582,13 +585,28 @@ def rigid_bones(motion: torch.Tensor, parents: Sequence[int], lengths: torch.Ten
     # (..., T, J, 3): each joint from its new parent (the root from itself: 0)
     offsets = motion.new_zeros(motion.shape).index_copy(-2, child, bones / norm.clamp_min(1e-12) * size[..., None, :, None])
     for j, kids in (branches or {}).items():
-        own = torch.stack([motion[..., c, :] - motion[..., j, :] for c in kids], dim=-1)  # (..., T, 3, 3)
-        frame = body_frame(_unit(own[..., 0]), _unit(own[..., 1]), _unit(own[..., 2]))  # (..., T, 3, 3)
-        local = (frame.transpose(-1, -2) @ own).mean(dim=-3, keepdim=True)  # (..., 1, 3, 3): the rigid piece
+        own, frame = _piece(motion, j, kids)
+        local = pieces[j] if pieces is not None else (frame.transpose(-1, -2) @ own).mean(dim=-3, keepdim=True)
         offsets[..., list(kids), :] = (frame @ local).transpose(-1, -2)  # (..., T, 3 kids, 3)
     # every joint is the root plus the offsets along its path from the root: one product with the tree
     path = _paths(tuple(parents)).to(motion)  # (J, J)
     return motion[..., :1, :] + torch.einsum("jk,...kc->...jc", path, offsets)
+
+
+def rigid_pieces(motion: torch.Tensor, branches: dict[int, tuple[int, int, int]]) -> dict[int, torch.Tensor]:
+    """The rigid pieces `rigid_bones` gives motion (..., T, J, 3) at its branches: {joint: (..., 1, 3, 3)},
+    the three children's mean offsets (columns) in the joint's body frame."""
+    out = {}
+    for j, kids in branches.items():
+        own, frame = _piece(motion, j, kids)
+        out[j] = (frame.transpose(-1, -2) @ own).mean(dim=-3, keepdim=True)
+    return out
+
+
+def _piece(motion: torch.Tensor, j: int, kids: tuple[int, int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Joint j's three children's offsets (..., T, 3, 3) (columns) and the body frame they span (..., T, 3, 3)."""
+    own = torch.stack([motion[..., c, :] - motion[..., j, :] for c in kids], dim=-1)
+    return own, body_frame(_unit(own[..., 0]), _unit(own[..., 1]), _unit(own[..., 2]))
 
 
 @functools.lru_cache(maxsize=None)

@@ -104,13 +104,21 @@ class MotionGenerator(nn.Module):
         and the per-step inputs that do not depend on the previous pose. Computing it once for a
         teacher-forced and a free-running unroll saves most of the second decode (the sequence
         LSTMs cost more than the 2-cell step loop)."""
-        T = trajectory.shape[1]
+        return self.encode_path(trajectory), self.step_inputs(cond, trajectory.shape[1])
+
+    def encode_path(self, trajectory: torch.Tensor) -> tuple:
+        """The trajectory encoder's final state (B, T, 3) -> ((h, c) of cell 0, (h, c) of cell 1), (B, H) each:
+        the state the pose decoder starts from."""
         _, (h, c) = self.traj_rnn(self.traj_act(self.traj_embed(trajectory)))  # (2, B, H) each
+        return (h[0], c[0]), (h[1], c[1])
+
+    def step_inputs(self, cond: torch.Tensor, T: int) -> tuple:
+        """The parts of the decoder's T step inputs that do not depend on the previous pose: cond (B, C*D)
+        and step t's share t/T of the window -> T x (B, H)."""
         w_rest = self.embed.weight[:, self.cfg.n_joints * 3:]
         t_frac = torch.arange(1, T + 1, dtype=cond.dtype, device=cond.device) / T  # (T,)
         fixed = F.linear(cond, w_rest[:, :-1], self.embed.bias)  # (B, H)
-        fixed = (fixed[:, None, :] + t_frac[None, :, None] * w_rest[:, -1]).unbind(1)  # T x (B, H)
-        return ((h[0], c[0]), (h[1], c[1])), fixed
+        return (fixed[:, None, :] + t_frac[None, :, None] * w_rest[:, -1]).unbind(1)  # T x (B, H)
 
     def unroll(self, prepared: tuple, target: torch.Tensor | None = None,
                teacher: torch.Tensor | None = None, keep: torch.Tensor | None = None) -> torch.Tensor:
