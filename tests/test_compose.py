@@ -257,21 +257,43 @@ def test_a_baseline_model_is_refused(tmp_path):
 
 # -- the seam's geometry --------------------------------------------------------------------------
 
+@pytest.mark.parametrize("name", ["humanact12", "cmu"])
 @pytest.mark.parametrize("primed", [False, True])
-def test_a_window_cut_short_is_the_whole_windows_first_frames(primed, cmu):
-    # the decoder is causal: drawing only the frames a window keeps changes none of them
+def test_a_window_cut_short_is_the_whole_windows_first_frames(primed, name, human, cmu):
+    # the decoder is causal: drawing only the frames a window keeps changes none of them (bones as drawn;
+    # a rigid model's first window takes its body from all T frames, so it is drawn whole)
     from odmo_cli.generation.compose import _Windows
 
-    win = _Windows(cmu, ComposeConfig())
+    loaded = human if name == "humanact12" else cmu
+    win = _Windows(loaded, ComposeConfig())
     g = torch.Generator().manual_seed(0)
-    z = torch.randn(3, cmu.model.cfg.latent_dim, generator=g)
+    z = torch.randn(3, loaded.model.cfg.latent_dim, generator=g)
     cond = win._cond(z, torch.tensor([0, 1, 2]))
     path = win._path(cond, torch.zeros(3, 3))
-    primer = torch.randn(3, 2, cmu.model.cfg.n_joints, 3, generator=g) if primed else None
-    whole = win._decode(cond, path, primer)
-    cut = win._decode(cond, path, primer, steps=37)
+    primer = torch.randn(3, 2, loaded.model.cfg.n_joints, 3, generator=g) if primed else None
+    whole = win._decode(cond, path, primer, rigid=False)
+    cut = win._decode(cond, path, primer, rigid=False, steps=37)
     assert cut.shape[1] == 37 and whole.shape[1] == path.shape[1]
     torch.testing.assert_close(cut, whole[:, :37])
+
+
+def test_the_feet_settle_from_the_frames_as_read_out(human, monkeypatch):
+    # settle_feet's contract: faded = new + offset * a weight per frame; a rigid model's frames must be
+    # compared as its body reads them, or the settled foot jumps where the glide ends
+    import odmo_cli.generation.compose as compose_module
+
+    seen = []
+
+    def record(faded, new, offset, *args):
+        seen.append((faded - new, offset))
+        return settle_feet(faded, new, offset, *args)
+
+    monkeypatch.setattr(compose_module, "settle_feet", record)
+    compose(human, "walk, sit 30f", n=3, seed=0)
+    (diff, offset), = seen  # (K, m, J, 3), (K, J, 3)
+    w = (diff * offset[:, None]).sum((-1, -2)) / (offset * offset).sum((-1, -2))[:, None]  # (K, m)
+    torch.testing.assert_close(diff, w[..., None, None] * offset[:, None], atol=1e-5, rtol=0)
+    assert float(w[:, 0].min()) > 0.9 and float(w[:, -1].abs().max()) < 1e-6
 
 
 def test_a_turn_about_the_up_axis_turns_the_heading_and_keeps_lengths():

@@ -13,8 +13,8 @@ ODMO makes windows of T frames (its clip length). A composition is built window 
 
 - The first window is an ordinary sample; or, with `start`, the given motion is kept exactly.
 - Every later window is *primed* with the motion's last k frames so far (ComposeConfig.prime): the
-  autoregressive pose decoder is teacher-forced with them for k steps, then draws the model's whole
-  window of T new frames (k + T steps), starting from the encoding of the path the trajectory generator
+  autoregressive pose decoder is teacher-forced with them for k steps, then draws the window's new
+  frames (k + m steps for the m <= T frames kept), starting from the encoding of the path the trajectory generator
   drew for the window (T frames from the origin, as in training; the same encoding gives the heading
   below). The root path is theirs for those k steps and the trajectory
   generator's own after them, its ground-plane velocity fading in from the primer's over the
@@ -271,8 +271,9 @@ class _Windows:
         first k frames -> its first `steps` frames (K, steps, J, 3; default all T'), the root read as the
         model's cfg.root says, the bones as its cfg.bones says (rigid: the composition's body, `keep_body`;
         rigid=False leaves them free for a caller that makes them rigid later). states: the decoder's
-        starting state (MotionGenerator.encode_path), when not path's own. The decoder is causal, so the
-        frames drawn do not depend on `steps`: a window cut short is not drawn to its end."""
+        starting state (MotionGenerator.encode_path), when not path's own. The decoder is causal, so with
+        rigid=False (or the composition's body set) the frames drawn do not depend on `steps`: a window cut
+        short is not drawn to its end."""
         motion_net = self.model.motion
         states = states if states is not None else motion_net.encode_path(path)
         prepared = (states, motion_net.step_inputs(cond, path.shape[1])[:steps])  # t/T' over the whole window
@@ -296,17 +297,18 @@ class _Windows:
         return self.model.motion.unroll((states, first_step))[:, 0].view(len(cond), -1, 3)
 
     def first(self, z, labels, ends, m: int, target: torch.Tensor | None):
-        """The composition's first window: an ordinary sample from the origin -> (K, m, J, 3)."""
+        """The composition's first window: an ordinary sample from the origin -> (K, m, J, 3), drawn whole
+        (a rigid model's body is that of all T frames) and cut."""
         cond = self._cond(z, labels)
         path, _ = self._aim(cond, ends, target, lambda p: p - p[:, :1], 1, m - 1)
-        motion = self._decode(cond, path, steps=m)
-        return motion - motion[:, :1, :1]
+        motion = self._decode(cond, path)
+        return motion[:, :m] - motion[:, :1, :1]
 
     def primed(self, z, labels, ends, prev: torch.Tensor, m: int, target: torch.Tensor | None):
         """A window continuing prev (K, k, J, 3), the motion's last k frames (world frame) -> its m <= T
         new frames (K, m, J, 3) in the world frame and the turn that placed them (K,). The decoder runs
-        k + T steps: the k primed ones, then the model's whole window, from the encoding of the path the
-        trajectory generator drew (T frames from the origin, as in training), not of the spliced path."""
+        k + m steps (the k primed ones, then the frames kept) from the encoding of the path the trajectory
+        generator drew (T frames from the origin, as in training), not of the spliced path."""
         k = prev.shape[1]
         cond = self._cond(z, labels)
         raw = self._path(cond, ends)  # (K, T, 3)
@@ -323,20 +325,22 @@ class _Windows:
         path, drawn = self._aim(cond, ends, target,
                                 lambda p: splice_path(after(p), primer[:, :, 0], height, self.cfg.blend, self.up),
                                 k, k + m - 1, raw)
-        if drawn is not raw:  # aimed at a target: the path was drawn again
+        if target is not None:  # aimed at a target: the path was drawn again
             states = self.model.motion.encode_path(drawn)
         motion = self._decode(cond, path, primer, states, rigid=False, steps=k + m)  # (K, k + m, J, 3), bones free
-        offset = primer[:, -1] - motion[:, k - 1]  # (K, J, 3)
+        offset = primer[:, -1] - motion[:, k - 1]  # (K, J, 3); a rigid model's bones are made rigid after the fade
         cfg = self.cfg
         frames = cfg.blend
         if cfg.fade_speed and self.sk.legs:
             leg = leg_length(primer[:, -1], self.sk.legs[0])  # (K,)
             frames = fade_length(offset, cfg.blend, cfg.longest, cfg.fade_speed * leg / self.fps)  # (K,)
-        new = fade(motion[:, k:k + m], offset, frames)
+        own = motion[:, k:k + m]
+        new = fade(own, offset, frames)
         if self.rigid:  # the decoder's bones, and the fade moving a bone's two ends apart: back to the body
-            new = self.body(new)
+            faded, new = new, self.body(new)
+            own = new - (faded - own)  # the decoder's own frames as the body reads them: the fade's share out
         if cfg.settle:  # the leg's IK keeps the lengths
-            new = settle_feet(new, motion[:, k:k + m], offset, self.sk, self.fps, cfg.longest)
+            new = settle_feet(new, own, offset, self.sk, self.fps, cfg.longest)
         return torch.einsum("ktjd,kcd->ktjc", new, rot) + anchor[:, None, None], yaw
 
     def _aim(self, cond, ends, target, place, first: int, last: int, raw=None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -423,7 +427,7 @@ def _segment(win: _Windows, loaded: LoadedODMO, seg: Planned, ids: np.ndarray, r
         else:
             new, yaw = win.primed(z, lab, ends, prev, m, target)
         pieces.append(new)
-        if win.lengths is None:
+        if win.lengths is None and method == "primed":
             win.keep_body(new)
         yaws.append(yaw[:, None].expand(-1, m))
         left -= m

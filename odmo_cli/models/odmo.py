@@ -107,8 +107,8 @@ class MotionGenerator(nn.Module):
         return self.encode_path(trajectory), self.step_inputs(cond, trajectory.shape[1])
 
     def encode_path(self, trajectory: torch.Tensor) -> tuple:
-        """The trajectory encoder's final state (B, T, 3) -> ((h, c) of cell 0, (h, c) of cell 1), (B, H) each:
-        the state the pose decoder starts from."""
+        """trajectory (B, T, 3) -> the trajectory encoder's final state, ((h, c) of cell 0, (h, c) of cell 1),
+        (B, H) each: the state the pose decoder starts from."""
         _, (h, c) = self.traj_rnn(self.traj_act(self.traj_embed(trajectory)))  # (2, B, H) each
         return (h[0], c[0]), (h[1], c[1])
 
