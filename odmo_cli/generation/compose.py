@@ -14,11 +14,11 @@ ODMO makes windows of T frames (its clip length). A composition is built window 
 - The first window is an ordinary sample; or, with `start`, the given motion is kept exactly.
 - Every later window is *primed* with the motion's last k frames so far (ComposeConfig.prime): the
   autoregressive pose decoder is teacher-forced with them for k steps, then draws the window's new
-  frames (k + m steps for the m <= T frames kept), starting from the encoding of the path the trajectory generator
-  drew for the window (T frames from the origin, as in training; the same encoding gives the heading
-  below). The root path is theirs for those k steps and the trajectory
-  generator's own after them, its ground-plane velocity fading in from the primer's over the
-  transition (`seam.splice_path`).
+  frames (k + m steps for the m <= T frames kept), starting from the encoding of the path the
+  trajectory generator drew for the window (T frames from the origin, as in training; without an end
+  point the same encoding gives the heading below). The root path is theirs for those k steps and the
+  trajectory generator's own after them, its ground-plane velocity fading in from the primer's over
+  the transition (`seam.splice_path`).
 - The window is drawn in the model's frame, as the model was trained: the primed frames are moved so
   their first root is at the origin and turned about the up axis so that the body faces, at the seam,
   where the model itself faces in its first frame for this code (one decoder step); the new frames are

@@ -586,7 +586,7 @@ def rigid_bones(motion: torch.Tensor, parents: Sequence[int], lengths: torch.Ten
     offsets = motion.new_zeros(motion.shape).index_copy(-2, child, bones / norm.clamp_min(1e-12) * size[..., None, :, None])
     for j, kids in (branches or {}).items():
         own, frame = _piece(motion, j, kids)
-        local = pieces[j] if pieces is not None else (frame.transpose(-1, -2) @ own).mean(dim=-3, keepdim=True)
+        local = pieces[j] if pieces is not None else _mean_piece(own, frame)
         offsets[..., list(kids), :] = (frame @ local).transpose(-1, -2)  # (..., T, 3 kids, 3)
     # every joint is the root plus the offsets along its path from the root: one product with the tree
     path = _paths(tuple(parents)).to(motion)  # (J, J)
@@ -596,17 +596,18 @@ def rigid_bones(motion: torch.Tensor, parents: Sequence[int], lengths: torch.Ten
 def rigid_pieces(motion: torch.Tensor, branches: dict[int, tuple[int, int, int]]) -> dict[int, torch.Tensor]:
     """The rigid pieces `rigid_bones` gives motion (..., T, J, 3) at its branches: {joint: (..., 1, 3, 3)},
     the three children's mean offsets (columns) in the joint's body frame."""
-    out = {}
-    for j, kids in branches.items():
-        own, frame = _piece(motion, j, kids)
-        out[j] = (frame.transpose(-1, -2) @ own).mean(dim=-3, keepdim=True)
-    return out
+    return {j: _mean_piece(*_piece(motion, j, kids)) for j, kids in branches.items()}
 
 
 def _piece(motion: torch.Tensor, j: int, kids: tuple[int, int, int]) -> tuple[torch.Tensor, torch.Tensor]:
     """Joint j's three children's offsets (..., T, 3, 3) (columns) and the body frame they span (..., T, 3, 3)."""
     own = torch.stack([motion[..., c, :] - motion[..., j, :] for c in kids], dim=-1)
     return own, body_frame(_unit(own[..., 0]), _unit(own[..., 1]), _unit(own[..., 2]))
+
+
+def _mean_piece(own: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
+    """The rigid piece (..., 1, 3, 3): the children's offsets `own` in their body `frame`, averaged over the frames."""
+    return (frame.transpose(-1, -2) @ own).mean(dim=-3, keepdim=True)
 
 
 @functools.lru_cache(maxsize=None)
